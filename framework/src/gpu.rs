@@ -1,0 +1,283 @@
+//! The GPU context: one wgpu device shared by every node, created only when a node asks for it.
+//!
+//! Where no adapter exists the request fails with a clear [`GpuError`]; nodes decide by their
+//! `device` parameter whether that is an error or a fall-back to their CPU path ([`Device`]).
+//! Mesa's software Vulkan (lavapipe) is a valid adapter, so CI runs the GPU code on the CPU.
+//! Adapter choice follows wgpu's environment variables (`WGPU_BACKEND`, `WGPU_ADAPTER_NAME`).
+
+use std::sync::{mpsc, Arc, OnceLock};
+
+use wgpu::util::DeviceExt;
+
+/// Why no GPU is available, or a GPU operation failed.
+#[derive(Debug, Clone, thiserror::Error)]
+pub enum GpuError {
+    /// No adapter could be found or opened.
+    #[error("no GPU adapter available ({0}); on Debian install mesa-vulkan-drivers and libvulkan1 for the software adapter, or set the node's `device = \"cpu\"`")]
+    NoAdapter(String),
+    /// A GPU operation failed.
+    #[error("GPU operation failed: {0}")]
+    Operation(String),
+}
+
+/// Where a node runs its work, a parameter of every node that has a GPU path.
+#[derive(
+    Clone,
+    Copy,
+    Debug,
+    Default,
+    PartialEq,
+    Eq,
+    serde::Serialize,
+    serde::Deserialize,
+    schemars::JsonSchema,
+)]
+#[serde(rename_all = "snake_case")]
+pub enum Device {
+    /// The CPU implementation.
+    #[default]
+    Cpu,
+    /// The GPU implementation; an error when no adapter exists.
+    Gpu,
+    /// The GPU when an adapter exists, else the CPU (logged once).
+    Auto,
+}
+
+/// An opened device with its queue.
+pub struct GpuContext {
+    /// The device.
+    pub device: wgpu::Device,
+    /// Its queue.
+    pub queue: wgpu::Queue,
+    /// What adapter it runs on (name, backend, device type).
+    pub adapter_info: wgpu::AdapterInfo,
+}
+
+/// Hands out the shared [`GpuContext`], opening it on the first request.
+#[derive(Default)]
+pub struct GpuProvider {
+    cell: OnceLock<Result<Arc<GpuContext>, GpuError>>,
+}
+
+impl GpuProvider {
+    /// A provider that has not opened anything yet.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// The shared context, opened on first call. Every later call returns the same device (or the
+    /// same error).
+    pub fn get(&self) -> Result<Arc<GpuContext>, GpuError> {
+        self.cell
+            .get_or_init(|| GpuContext::open().map(Arc::new))
+            .clone()
+    }
+
+    /// Resolves a node's `device` parameter: `Some(ctx)` to run on the GPU, `None` for the CPU.
+    pub fn for_device(
+        &self,
+        device: Device,
+        node: &str,
+    ) -> Result<Option<Arc<GpuContext>>, GpuError> {
+        match device {
+            Device::Cpu => Ok(None),
+            Device::Gpu => self.get().map(Some),
+            Device::Auto => match self.get() {
+                Ok(ctx) => Ok(Some(ctx)),
+                Err(e) => {
+                    tracing::warn!("node `{node}`: device = \"auto\" falls back to the CPU: {e}");
+                    Ok(None)
+                }
+            },
+        }
+    }
+
+    /// True when a context has been opened.
+    pub fn is_open(&self) -> bool {
+        matches!(self.cell.get(), Some(Ok(_)))
+    }
+}
+
+impl GpuContext {
+    /// Opens the best adapter wgpu finds (high performance preferred).
+    pub fn open() -> Result<Self, GpuError> {
+        let instance =
+            wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+            power_preference: wgpu::PowerPreference::HighPerformance,
+            ..Default::default()
+        }))
+        .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
+        let adapter_info = adapter.get_info();
+        let limits = wgpu::Limits::downlevel_defaults().using_resolution(adapter.limits());
+        let limits = wgpu::Limits {
+            max_storage_buffer_binding_size: adapter.limits().max_storage_buffer_binding_size,
+            max_buffer_size: adapter.limits().max_buffer_size,
+            max_compute_workgroup_storage_size: adapter.limits().max_compute_workgroup_storage_size,
+            max_compute_invocations_per_workgroup: adapter
+                .limits()
+                .max_compute_invocations_per_workgroup,
+            max_storage_buffers_per_shader_stage: adapter
+                .limits()
+                .max_storage_buffers_per_shader_stage,
+            ..limits
+        };
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("misslam"),
+            required_limits: limits,
+            ..Default::default()
+        }))
+        .map_err(|e| {
+            GpuError::NoAdapter(format!(
+                "{} could not open a device: {e}",
+                adapter_info.name
+            ))
+        })?;
+        tracing::info!(
+            "GPU: {} ({:?}, {:?})",
+            adapter_info.name,
+            adapter_info.backend,
+            adapter_info.device_type
+        );
+        Ok(GpuContext {
+            device,
+            queue,
+            adapter_info,
+        })
+    }
+
+    /// Compiles a WGSL compute shader into a pipeline with an automatic layout.
+    pub fn compute_pipeline(&self, label: &str, wgsl: &str, entry: &str) -> wgpu::ComputePipeline {
+        let module = self
+            .device
+            .create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(label),
+                source: wgpu::ShaderSource::Wgsl(wgsl.into()),
+            });
+        self.device
+            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(label),
+                layout: None,
+                module: &module,
+                entry_point: Some(entry),
+                compilation_options: Default::default(),
+                cache: None,
+            })
+    }
+
+    /// Copies `size` bytes of a `COPY_SRC` buffer back to the host and waits for them.
+    pub fn read_back(&self, src: &wgpu::Buffer, size: u64) -> Result<Vec<u8>, GpuError> {
+        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("readback"),
+            size,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut enc = self.device.create_command_encoder(&Default::default());
+        enc.copy_buffer_to_buffer(src, 0, &staging, 0, size);
+        self.queue.submit(Some(enc.finish()));
+        let slice = staging.slice(..);
+        let (tx, rx) = mpsc::channel();
+        slice.map_async(wgpu::MapMode::Read, move |r| {
+            let _ = tx.send(r);
+        });
+        self.device
+            .poll(wgpu::PollType::Wait {
+                submission_index: None,
+                timeout: None,
+            })
+            .map_err(|e| GpuError::Operation(e.to_string()))?;
+        rx.recv()
+            .map_err(|e| GpuError::Operation(e.to_string()))?
+            .map_err(|e| GpuError::Operation(e.to_string()))?;
+        let data = slice
+            .get_mapped_range()
+            .map_err(|e| GpuError::Operation(e.to_string()))?
+            .to_vec();
+        staging.unmap();
+        Ok(data)
+    }
+}
+
+/// WGSL of the RGB-to-gray kernel.
+pub const GRAY_WGSL: &str = include_str!("../../shaders/image/gray.wgsl");
+
+/// RGB to BT.601 gray on the GPU, bit-exact with [`crate::payload::luma_bt601`].
+pub struct GrayKernel {
+    pipeline: wgpu::ComputePipeline,
+}
+
+impl GrayKernel {
+    /// Compiles the kernel.
+    pub fn new(ctx: &GpuContext) -> Self {
+        GrayKernel {
+            pipeline: ctx.compute_pipeline("gray", GRAY_WGSL, "main"),
+        }
+    }
+
+    /// Converts interleaved RGB bytes (3 per pixel) to gray, upload and readback included.
+    pub fn run(&self, ctx: &GpuContext, rgb: &[u8]) -> Result<Vec<u8>, GpuError> {
+        if rgb.len() % 3 != 0 {
+            return Err(GpuError::Operation(format!(
+                "RGB buffer of {} bytes is not a whole number of pixels",
+                rgb.len()
+            )));
+        }
+        let pixels = rgb.len() / 3;
+        if pixels == 0 {
+            return Ok(Vec::new());
+        }
+        let quads = pixels.div_ceil(4);
+        let mut padded = Vec::with_capacity(rgb.len().div_ceil(4) * 4);
+        padded.extend_from_slice(rgb);
+        padded.resize(rgb.len().div_ceil(4) * 4, 0);
+        let params: [u32; 4] = [pixels as u32, 0, 0, 0];
+        let dev = &ctx.device;
+        let params_buf = dev.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("gray params"),
+            contents: bytemuck::cast_slice(&params),
+            usage: wgpu::BufferUsages::UNIFORM,
+        });
+        let in_buf = dev.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("gray rgb"),
+            contents: &padded,
+            usage: wgpu::BufferUsages::STORAGE,
+        });
+        let out_size = (quads * 4) as u64;
+        let out_buf = dev.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("gray out"),
+            size: out_size,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        });
+        let bind = dev.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("gray"),
+            layout: &self.pipeline.get_bind_group_layout(0),
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: params_buf.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: in_buf.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: out_buf.as_entire_binding(),
+                },
+            ],
+        });
+        let mut enc = dev.create_command_encoder(&Default::default());
+        {
+            let mut pass = enc.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&self.pipeline);
+            pass.set_bind_group(0, &bind, &[]);
+            pass.dispatch_workgroups((quads as u32).div_ceil(64), 1, 1);
+        }
+        ctx.queue.submit(Some(enc.finish()));
+        let mut out = ctx.read_back(&out_buf, out_size)?;
+        out.truncate(pixels);
+        Ok(out)
+    }
+}

@@ -1,0 +1,141 @@
+//! What a run measured: frame counts, per-node timing statistics, evaluation figures.
+//! Serialised as `metrics.json` in the run's output folder (fields documented in the README).
+
+use std::collections::BTreeMap;
+
+use serde::Serialize;
+
+/// Timing statistics of one node over the frames it ran, in milliseconds.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct TimingStats {
+    /// Frames measured.
+    pub frames: usize,
+    /// Mean.
+    pub mean_ms: f64,
+    /// Median.
+    pub median_ms: f64,
+    /// 95th percentile (nearest rank).
+    pub p95_ms: f64,
+    /// Maximum.
+    pub max_ms: f64,
+}
+
+impl TimingStats {
+    /// Statistics of a set of samples (all zero when empty).
+    pub fn from_samples(samples: &[f64]) -> Self {
+        if samples.is_empty() {
+            return TimingStats {
+                frames: 0,
+                mean_ms: 0.0,
+                median_ms: 0.0,
+                p95_ms: 0.0,
+                max_ms: 0.0,
+            };
+        }
+        let mut s = samples.to_vec();
+        s.sort_by(f64::total_cmp);
+        let n = s.len();
+        let median = if n % 2 == 1 {
+            s[n / 2]
+        } else {
+            0.5 * (s[n / 2 - 1] + s[n / 2])
+        };
+        let rank = ((0.95 * n as f64).ceil() as usize).clamp(1, n);
+        TimingStats {
+            frames: n,
+            mean_ms: s.iter().sum::<f64>() / n as f64,
+            median_ms: median,
+            p95_ms: s[rank - 1],
+            max_ms: s[n - 1],
+        }
+    }
+}
+
+/// A frame that was skipped under `on_error = "skip_frame"`.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct SkippedFrame {
+    /// Frame index.
+    pub frame: u64,
+    /// Node that failed.
+    pub node: String,
+    /// Why.
+    pub error: String,
+}
+
+/// Frame counts.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct FrameCounts {
+    /// Frames every node processed.
+    pub processed: u64,
+    /// Frames dropped by the error policy.
+    pub skipped: u64,
+    /// Details of each skipped frame.
+    pub skipped_frames: Vec<SkippedFrame>,
+}
+
+/// Everything `metrics.json` holds.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct RunMetrics {
+    /// Graph name.
+    pub graph: String,
+    /// Graph file.
+    pub graph_file: String,
+    /// `--set` overrides applied.
+    pub overrides: Vec<String>,
+    /// Frame counts.
+    pub frames: FrameCounts,
+    /// Per-node timing in ms, plus `_frame` for the whole frame (scheduling included) and
+    /// `_rerun` for logging.
+    pub timing_ms: BTreeMap<String, TimingStats>,
+    /// Figures reported by evaluation nodes, e.g. `depth.mae_mm`.
+    pub eval: BTreeMap<String, f64>,
+    /// Wall time of the whole run, seconds.
+    pub wall_s: f64,
+    /// Set when the run stopped on an error: what happened.
+    pub aborted: Option<String>,
+    /// The parameters every node ran with, after defaults and overrides.
+    pub params: BTreeMap<String, serde_json::Value>,
+}
+
+impl RunMetrics {
+    /// A table for the terminal.
+    pub fn summary_table(&self) -> String {
+        let mut s = format!(
+            "{:<24} {:>7} {:>10} {:>10} {:>10}\n",
+            "node", "frames", "mean ms", "median ms", "p95 ms"
+        );
+        for (node, t) in &self.timing_ms {
+            s.push_str(&format!(
+                "{:<24} {:>7} {:>10.3} {:>10.3} {:>10.3}\n",
+                node, t.frames, t.mean_ms, t.median_ms, t.p95_ms
+            ));
+        }
+        s.push_str(&format!(
+            "frames processed: {}, skipped: {}, wall {:.2} s\n",
+            self.frames.processed, self.frames.skipped, self.wall_s
+        ));
+        for (k, v) in &self.eval {
+            s.push_str(&format!("{k:<24} {v:.4}\n"));
+        }
+        s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stats_of_known_samples() {
+        let t = TimingStats::from_samples(&[4.0, 1.0, 3.0, 2.0]);
+        assert_eq!(t.frames, 4);
+        assert_eq!(t.mean_ms, 2.5);
+        assert_eq!(t.median_ms, 2.5);
+        assert_eq!(t.p95_ms, 4.0);
+        let samples: Vec<f64> = (1..=100).map(f64::from).collect();
+        let t = TimingStats::from_samples(&samples);
+        assert_eq!(t.p95_ms, 95.0);
+        assert_eq!(t.median_ms, 50.5);
+        assert_eq!(TimingStats::from_samples(&[]).frames, 0);
+    }
+}

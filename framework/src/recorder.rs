@@ -1,0 +1,376 @@
+//! Rerun recording: every output port of every node with `log = true`, under `/<node>/<port>`,
+//! on the timelines `frame` (sequence) and `input_time` (the source's timestamp, seconds).
+//!
+//! Scene units are millimetres: depth images use `meter = 1` (one depth unit per scene unit) so
+//! that they line up with the points, poses and meshes logged in mm. The camera convention is
+//! OpenCV's (x right, y down, z forward), declared on the root.
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::str::FromStr;
+
+use crate::graph::Graph;
+use crate::payload::{Payload, StereoCalib};
+
+/// Where the recording goes (`--rerun`).
+#[derive(Clone, Debug, PartialEq, Eq, Default)]
+pub enum RerunMode {
+    /// No recording.
+    #[default]
+    Off,
+    /// Save to an `.rrd` file.
+    Save(PathBuf),
+    /// Spawn a viewer (`rerun` on the PATH, from `pip install rerun-sdk==0.36.3`) and stream to it.
+    Spawn,
+    /// Stream to a running viewer at a gRPC proxy URL (default `rerun+http://127.0.0.1:9876/proxy`).
+    Connect(Option<String>),
+}
+
+impl FromStr for RerunMode {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "off" => Ok(RerunMode::Off),
+            "spawn" => Ok(RerunMode::Spawn),
+            "connect" => Ok(RerunMode::Connect(None)),
+            _ => {
+                if let Some(path) = s.strip_prefix("save:") {
+                    if path.is_empty() {
+                        return Err("`save:` needs a file, e.g. save:out.rrd".into());
+                    }
+                    Ok(RerunMode::Save(PathBuf::from(path)))
+                } else if let Some(addr) = s.strip_prefix("connect:") {
+                    let url = if addr.contains("://") {
+                        addr.to_owned()
+                    } else {
+                        format!("rerun+http://{addr}/proxy")
+                    };
+                    Ok(RerunMode::Connect(Some(url)))
+                } else {
+                    Err(format!(
+                        "`{s}`: expected save:PATH.rrd, spawn, connect, connect:HOST:PORT or off"
+                    ))
+                }
+            }
+        }
+    }
+}
+
+/// Why the recording could not be opened or written.
+#[derive(Debug, thiserror::Error)]
+#[error("rerun: {0}")]
+pub struct RecorderError(String);
+
+/// A Rerun recording stream plus the state needed to draw trajectories.
+pub struct Recorder {
+    rec: rerun::RecordingStream,
+    trajectories: HashMap<String, Vec<[f32; 3]>>,
+}
+
+impl Recorder {
+    /// Opens a recording for `mode`; `None` for [`RerunMode::Off`].
+    pub fn open(mode: &RerunMode, recording_name: &str) -> Result<Option<Recorder>, RecorderError> {
+        let builder = rerun::RecordingStreamBuilder::new("misslam").recording_name(recording_name);
+        let rec = match mode {
+            RerunMode::Off => return Ok(None),
+            RerunMode::Save(path) => {
+                if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
+                    std::fs::create_dir_all(parent).map_err(|e| {
+                        RecorderError(format!("cannot create {}: {e}", parent.display()))
+                    })?;
+                }
+                builder.save(path)
+            }
+            RerunMode::Spawn => builder.spawn(),
+            RerunMode::Connect(None) => builder.connect_grpc(),
+            RerunMode::Connect(Some(url)) => builder.connect_grpc_opts(url.clone()),
+        }
+        .map_err(|e| RecorderError(e.to_string()))?;
+        Ok(Some(Recorder {
+            rec,
+            trajectories: HashMap::new(),
+        }))
+    }
+
+    /// Logs the graph's TOML (and overrides) as a static text document at `/graph`.
+    pub fn log_graph(&self, graph: &Graph) -> Result<(), RecorderError> {
+        let mut md = format!("# {}\n\n`{}`\n\n", graph.name, graph.file.display());
+        if !graph.overrides.is_empty() {
+            md.push_str("Overrides: ");
+            for o in &graph.overrides {
+                md.push_str(&format!("`--set {o}` "));
+            }
+            md.push_str("\n\n");
+        }
+        md.push_str("```toml\n");
+        md.push_str(&graph.text);
+        md.push_str("\n```\n");
+        self.rec
+            .log_static("graph", &rerun::TextDocument::from_markdown(md))
+            .map_err(err)?;
+        self.rec
+            .log_static("/", &rerun::ViewCoordinates::RIGHT_HAND_Y_DOWN())
+            .map_err(err)
+    }
+
+    /// Sets the time for what is logged next.
+    pub fn begin_frame(&self, frame: u64, input_time: Option<f64>) {
+        self.rec.set_time_sequence("frame", frame as i64);
+        if let Some(t) = input_time {
+            self.rec.set_duration_secs("input_time", t);
+        }
+    }
+
+    /// Logs one node's wall time on this frame under `/timing/<node>`.
+    pub fn log_timing(&self, node: &str, ms: f64) -> Result<(), RecorderError> {
+        self.rec
+            .log(format!("timing/{node}"), &rerun::Scalars::single(ms))
+            .map_err(err)
+    }
+
+    /// Logs a payload at `path` with the archetypes that fit it.
+    pub fn log_payload(&mut self, path: &str, payload: &Payload) -> Result<(), RecorderError> {
+        let rec = &self.rec;
+        match payload {
+            Payload::Stereo(s) => {
+                let left = format!("{path}/left");
+                rec.log(left.as_str(), &pinhole(&s.calib, s.calib.cx))
+                    .map_err(err)?;
+                rec.log(left.as_str(), &image(&s.left)).map_err(err)?;
+                let right = format!("{path}/right");
+                // The right camera sits `baseline` to the right of the left one.
+                rec.log(
+                    right.as_str(),
+                    &rerun::Transform3D::from_translation([s.calib.baseline_mm as f32, 0.0, 0.0]),
+                )
+                .map_err(err)?;
+                rec.log(right.as_str(), &pinhole(&s.calib, s.calib.cx_right))
+                    .map_err(err)?;
+                rec.log(right.as_str(), &image(&s.right)).map_err(err)?;
+                if let Some(mask) = &s.left_mask {
+                    rec.log(
+                        format!("{path}/left_mask"),
+                        &rerun::Image::from_l8(
+                            mask.data.iter().map(|&v| v * 255).collect::<Vec<u8>>(),
+                            [mask.width, mask.height],
+                        ),
+                    )
+                    .map_err(err)?;
+                }
+            }
+            Payload::Image(img) => rec.log(path, &image(img)).map_err(err)?,
+            Payload::Disparity(d) => rec
+                .log(path, &depth_image(&d.map.data, d.map.width, d.map.height))
+                .map_err(err)?,
+            Payload::Depth(d) => {
+                rec.log(path, &pinhole(&d.calib, d.calib.cx)).map_err(err)?;
+                rec.log(path, &depth_image(&d.map.data, d.map.width, d.map.height))
+                    .map_err(err)?;
+            }
+            Payload::VertexMap(v) => {
+                let pts: Vec<[f32; 3]> = v
+                    .points
+                    .iter()
+                    .copied()
+                    .filter(|p| p[2].is_finite())
+                    .collect();
+                rec.log(path, &rerun::Points3D::new(pts).with_radii([0.2f32]))
+                    .map_err(err)?;
+            }
+            Payload::NormalMap(n) => {
+                let rgb: Vec<u8> = n
+                    .normals
+                    .iter()
+                    .flat_map(|v| {
+                        v.map(|c| {
+                            if c.is_finite() {
+                                ((c * 0.5 + 0.5) * 255.0).clamp(0.0, 255.0) as u8
+                            } else {
+                                0
+                            }
+                        })
+                    })
+                    .collect();
+                rec.log(path, &rerun::Image::from_rgb24(rgb, [n.width, n.height]))
+                    .map_err(err)?;
+            }
+            Payload::Features(f) => {
+                let pts: Vec<[f32; 2]> = f.keypoints.iter().map(|k| [k.x, k.y]).collect();
+                let radii: Vec<f32> = f
+                    .keypoints
+                    .iter()
+                    .map(|k| (k.size * 0.5).max(1.0))
+                    .collect();
+                rec.log(path, &rerun::Points2D::new(pts).with_radii(radii))
+                    .map_err(err)?;
+                if let Some(p3) = &f.points {
+                    let pts: Vec<[f32; 3]> =
+                        p3.iter().copied().filter(|p| p[2].is_finite()).collect();
+                    rec.log(format!("{path}/points3d"), &rerun::Points3D::new(pts))
+                        .map_err(err)?;
+                }
+            }
+            Payload::Matches(m) => {
+                let strips: Vec<[[f32; 2]; 2]> = m
+                    .query_xy
+                    .iter()
+                    .zip(&m.train_xy)
+                    .map(|(a, b)| [*a, *b])
+                    .collect();
+                rec.log(path, &rerun::LineStrips2D::new(strips))
+                    .map_err(err)?;
+            }
+            Payload::Pose(p) => {
+                let iso = p.world_from_camera;
+                let t = iso.translation.vector.map(|v| v as f32);
+                let r = iso.rotation.to_rotation_matrix();
+                let m = r.matrix().map(|v| v as f32);
+                let cols = [
+                    [m[(0, 0)], m[(1, 0)], m[(2, 0)]],
+                    [m[(0, 1)], m[(1, 1)], m[(2, 1)]],
+                    [m[(0, 2)], m[(1, 2)], m[(2, 2)]],
+                ];
+                rec.log(
+                    path,
+                    &rerun::Transform3D::from_translation_mat3x3([t.x, t.y, t.z], cols),
+                )
+                .map_err(err)?;
+                let traj = self.trajectories.entry(path.to_owned()).or_default();
+                traj.push([t.x, t.y, t.z]);
+                rec.log(
+                    format!("{path}_trajectory"),
+                    &rerun::LineStrips3D::new([traj.clone()]),
+                )
+                .map_err(err)?;
+            }
+            Payload::DeformationGraph(g) => {
+                let deformed: Vec<[f32; 3]> = g
+                    .nodes
+                    .iter()
+                    .zip(&g.translations)
+                    .map(|(n, t)| [n[0] + t[0], n[1] + t[1], n[2] + t[2]])
+                    .collect();
+                let edges: Vec<[[f32; 3]; 2]> = g
+                    .edges
+                    .iter()
+                    .filter(|e| {
+                        (e[0] as usize) < deformed.len() && (e[1] as usize) < deformed.len()
+                    })
+                    .map(|e| [deformed[e[0] as usize], deformed[e[1] as usize]])
+                    .collect();
+                rec.log(
+                    format!("{path}/nodes"),
+                    &rerun::Points3D::new(deformed).with_radii([0.5f32]),
+                )
+                .map_err(err)?;
+                rec.log(format!("{path}/edges"), &rerun::LineStrips3D::new(edges))
+                    .map_err(err)?;
+            }
+            Payload::Model(m) => {
+                let colors: Vec<rerun::Color> = m
+                    .colors
+                    .iter()
+                    .map(|c| rerun::Color::from_rgb(c[0], c[1], c[2]))
+                    .collect();
+                rec.log(
+                    path,
+                    &rerun::Points3D::new(m.positions.clone())
+                        .with_colors(colors)
+                        .with_radii([0.25f32]),
+                )
+                .map_err(err)?;
+            }
+            Payload::Mesh(mesh) => {
+                let mut a = rerun::Mesh3D::new(mesh.vertices.clone())
+                    .with_triangle_indices(mesh.triangles.clone());
+                if let Some(n) = &mesh.normals {
+                    a = a.with_vertex_normals(n.clone());
+                }
+                if let Some(c) = &mesh.colors {
+                    a = a.with_vertex_colors(
+                        c.iter().map(|c| rerun::Color::from_rgb(c[0], c[1], c[2])),
+                    );
+                }
+                rec.log(path, &a).map_err(err)?;
+            }
+            Payload::PointCloud(pc) => {
+                let mut a = rerun::Points3D::new(pc.positions.clone()).with_radii([0.25f32]);
+                if let Some(c) = &pc.colors {
+                    a = a.with_colors(c.iter().map(|c| rerun::Color::from_rgb(c[0], c[1], c[2])));
+                }
+                rec.log(path, &a).map_err(err)?;
+            }
+            Payload::Metrics(m) => {
+                for (k, v) in &m.values {
+                    rec.log(format!("{path}/{k}"), &rerun::Scalars::single(*v))
+                        .map_err(err)?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Blocks until everything logged so far has been written (or sent).
+    pub fn flush(&self) -> Result<(), RecorderError> {
+        self.rec
+            .flush_blocking()
+            .map_err(|e| RecorderError(e.to_string()))
+    }
+}
+
+fn err(e: impl std::fmt::Display) -> RecorderError {
+    RecorderError(e.to_string())
+}
+
+fn pinhole(c: &StereoCalib, cx: f64) -> rerun::Pinhole {
+    rerun::Pinhole::from_focal_length_and_resolution(
+        [c.fx as f32, c.fy as f32],
+        [c.width as f32, c.height as f32],
+    )
+    .with_principal_point([cx as f32, c.cy as f32])
+    .with_image_plane_distance(20.0f32)
+}
+
+fn image(img: &crate::payload::Image) -> rerun::Image {
+    if img.channels == 1 {
+        rerun::Image::from_l8(img.data.clone(), [img.width, img.height])
+    } else {
+        rerun::Image::from_rgb24(img.data.clone(), [img.width, img.height])
+    }
+}
+
+fn depth_image(data: &[f32], width: u32, height: u32) -> rerun::DepthImage {
+    let bytes: Vec<u8> = bytemuck::cast_slice(data).to_vec();
+    rerun::DepthImage::from_data_type_and_bytes(
+        bytes,
+        [width, height],
+        rerun::datatypes::ChannelDatatype::F32,
+    )
+    .with_meter(1.0f32)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn modes_parse() {
+        assert_eq!("off".parse::<RerunMode>(), Ok(RerunMode::Off));
+        assert_eq!(
+            "save:a/b.rrd".parse::<RerunMode>(),
+            Ok(RerunMode::Save("a/b.rrd".into()))
+        );
+        assert_eq!(
+            "connect:127.0.0.1:9877".parse::<RerunMode>(),
+            Ok(RerunMode::Connect(Some(
+                "rerun+http://127.0.0.1:9877/proxy".into()
+            )))
+        );
+        assert!("save:".parse::<RerunMode>().is_err());
+        assert!("view"
+            .parse::<RerunMode>()
+            .unwrap_err()
+            .contains("save:PATH.rrd"));
+    }
+}

@@ -1,0 +1,170 @@
+//! `misslam`: run, validate and inspect TOML graphs of SLAM plugins.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::Context;
+use clap::{Parser, Subcommand};
+use misslam_framework::recorder::{Recorder, RerunMode};
+use misslam_framework::{graph, RunOptions, Runtime};
+
+#[derive(Parser)]
+#[command(
+    name = "misslam",
+    version,
+    about = "Non-rigid 3D SLAM for minimally invasive surgery: run graphs of swappable plugins"
+)]
+struct Cli {
+    /// Log filter (tracing syntax), e.g. `info`, `debug`, `misslam_framework=debug`.
+    #[arg(long, global = true, default_value = "info", env = "MISSLAM_LOG")]
+    log: String,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run a graph.
+    Run {
+        /// The graph file (TOML).
+        graph: PathBuf,
+        /// Override a parameter: `node.param=value`, `node.plugin=ID`, `graph.seed=3`. Repeatable.
+        #[arg(long = "set", value_name = "NODE.PARAM=VALUE")]
+        set: Vec<String>,
+        /// Process at most N frames (overrides the graph's `frames.count`).
+        #[arg(long)]
+        frames: Option<u64>,
+        /// Output folder (default: the graph's `out`, else `out/<graph name>`).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Recording: save:PATH.rrd | spawn | connect[:HOST:PORT] | off.
+        #[arg(long, default_value = "off")]
+        rerun: String,
+        /// No progress bar.
+        #[arg(long)]
+        quiet: bool,
+    },
+    /// Check a graph without running it.
+    Validate {
+        /// The graph file (TOML).
+        graph: PathBuf,
+        /// Overrides to check as well.
+        #[arg(long = "set", value_name = "NODE.PARAM=VALUE")]
+        set: Vec<String>,
+    },
+    /// List plugins, or describe one: ports and every parameter with type, default and doc.
+    Plugins {
+        /// A plugin id, e.g. `source.stereo_folder`.
+        id: Option<String>,
+    },
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let filter = tracing_subscriber::EnvFilter::try_new(&cli.log)
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_target(false)
+        .init();
+    match run(cli.command) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            // One line with the cause chain; graph errors keep their snippet below.
+            let mut line = e.to_string();
+            for cause in e.chain().skip(1) {
+                line.push_str(": ");
+                line.push_str(&cause.to_string());
+            }
+            eprintln!("error: {line}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(command: Command) -> anyhow::Result<()> {
+    let registry = misslam::builtin_registry();
+    match command {
+        Command::Plugins { id: None } => {
+            for p in registry.iter() {
+                let info = p.info();
+                println!("{:<24} {}", info.id, info.summary);
+            }
+            Ok(())
+        }
+        Command::Plugins { id: Some(id) } => {
+            let text = registry.describe(&id).with_context(|| {
+                let ids: Vec<&str> = registry.ids().collect();
+                format!("no plugin `{id}`; known: {}", ids.join(", "))
+            })?;
+            print!("{text}");
+            Ok(())
+        }
+        Command::Validate { graph: path, set } => {
+            let g = graph::load(&path, &registry, &set)?;
+            println!(
+                "{}: ok ({} nodes in {} levels)",
+                path.display(),
+                g.nodes.len(),
+                g.nodes.last().map_or(0, |n| n.level + 1)
+            );
+            Ok(())
+        }
+        Command::Run {
+            graph: path,
+            set,
+            frames,
+            out,
+            rerun,
+            quiet,
+        } => {
+            let mode: RerunMode = rerun
+                .parse()
+                .map_err(|e: String| anyhow::anyhow!("--rerun {e}"))?;
+            let g = graph::load(&path, &registry, &set)?;
+            let name = g.name.clone();
+            let runtime = Runtime::build(g)?;
+            let recorder = Recorder::open(&mode, &name)?;
+            let progress = (!quiet).then(|| {
+                let bar = indicatif::ProgressBar::new(0);
+                bar.set_style(
+                    indicatif::ProgressStyle::with_template(
+                        "{spinner} {pos}/{len} frames [{elapsed_precise}] {per_sec}",
+                    )
+                    .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+                );
+                bar
+            });
+            let bar = progress.clone();
+            let opts = RunOptions {
+                out_dir: out,
+                frames,
+                recorder,
+                progress: bar.map(|b| {
+                    Box::new(move |done: u64, total: Option<u64>| {
+                        if let Some(t) = total {
+                            b.set_length(t);
+                        } else {
+                            b.set_length(done);
+                        }
+                        b.set_position(done);
+                    }) as Box<dyn FnMut(u64, Option<u64>) + Send>
+                }),
+            };
+            let report = runtime.run(opts)?;
+            if let Some(b) = progress {
+                b.finish_and_clear();
+            }
+            eprint!("{}", report.metrics.summary_table());
+            eprintln!("metrics: {}", report.metrics_path.display());
+            if let RerunMode::Save(p) = &mode {
+                eprintln!("recording: {}", p.display());
+            }
+            match report.error {
+                Some(e) => Err(e.into()),
+                None => Ok(()),
+            }
+        }
+    }
+}
