@@ -128,11 +128,10 @@ pub fn parse_params<P: DeserializeOwned>(params: &toml::Table) -> Result<P, Buil
             serde_path_to_error::Segment::Map { key } => Some(key.clone()),
             _ => None,
         });
-        BuildError::Param {
-            key,
-            path,
-            message: e.into_inner().to_string(),
-        }
+        // toml appends "in `key`" on a second line; the path already says where.
+        let message = e.into_inner().to_string();
+        let message = message.lines().next().unwrap_or_default().trim().to_owned();
+        BuildError::Param { key, path, message }
     })
 }
 
@@ -229,19 +228,31 @@ pub fn closest<'a>(word: &str, candidates: impl Iterator<Item = &'a str>) -> Opt
         .map(|(_, c)| c)
 }
 
+/// Optimal string alignment distance: edits plus adjacent transpositions (`stpe` -> `step` is 1).
 fn edit_distance(a: &str, b: &str) -> usize {
+    let a: Vec<char> = a.chars().collect();
     let b: Vec<char> = b.chars().collect();
-    let mut prev: Vec<usize> = (0..=b.len()).collect();
-    let mut cur = vec![0; b.len() + 1];
-    for (i, ca) in a.chars().enumerate() {
-        cur[0] = i + 1;
-        for (j, &cb) in b.iter().enumerate() {
-            let sub = prev[j] + usize::from(ca != cb);
-            cur[j + 1] = sub.min(prev[j + 1] + 1).min(cur[j] + 1);
-        }
-        std::mem::swap(&mut prev, &mut cur);
+    let w = b.len() + 1;
+    let mut d = vec![0usize; (a.len() + 1) * w];
+    for i in 0..=a.len() {
+        d[i * w] = i;
     }
-    prev[b.len()]
+    for (j, v) in d.iter_mut().enumerate().take(w) {
+        *v = j;
+    }
+    for i in 1..=a.len() {
+        for j in 1..=b.len() {
+            let cost = usize::from(a[i - 1] != b[j - 1]);
+            let mut best = (d[(i - 1) * w + j] + 1)
+                .min(d[i * w + j - 1] + 1)
+                .min(d[(i - 1) * w + j - 1] + cost);
+            if i > 1 && j > 1 && a[i - 1] == b[j - 2] && a[i - 2] == b[j - 1] {
+                best = best.min(d[(i - 2) * w + j - 2] + 1);
+            }
+            d[i * w + j] = best;
+        }
+    }
+    d[a.len() * w + b.len()]
 }
 
 /// Parameter docs from a JSON schema, and the known keys when unknown ones are denied.
@@ -436,6 +447,8 @@ mod tests {
     #[test]
     fn edit_distance_and_suggestions() {
         assert_eq!(edit_distance("paths", "pths"), 1);
+        assert_eq!(edit_distance("stpe", "step"), 1);
+        assert_eq!(edit_distance("kitten", "sitting"), 3);
         assert_eq!(edit_distance("", "abc"), 3);
         let known = ["paths", "max_disparity", "device"];
         assert_eq!(closest("pahts", known.iter().copied()), Some("paths"));

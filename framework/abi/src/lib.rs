@@ -75,6 +75,11 @@ impl Str {
     }
 }
 
+// SAFETY: a `Str` in a vtable or port table points to immutable static bytes.
+unsafe impl Sync for Str {}
+// SAFETY: as above; the pointer is only read.
+unsafe impl Send for Str {}
+
 /// What a port carries across the boundary.
 #[repr(u32)]
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
