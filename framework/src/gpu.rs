@@ -3,7 +3,8 @@
 //! Where no adapter exists the request fails with a clear [`GpuError`]; nodes decide by their
 //! `device` parameter whether that is an error or a fall-back to their CPU path ([`Device`]).
 //! Mesa's software Vulkan (lavapipe) is a valid adapter, so CI runs the GPU code on the CPU.
-//! Adapter choice follows wgpu's environment variables (`WGPU_BACKEND`, `WGPU_ADAPTER_NAME`).
+//! Adapter choice follows wgpu's environment variables (`WGPU_BACKEND`, `WGPU_ADAPTER_NAME`);
+//! without them, the primary backends (Vulkan, Metal, DX12) are tried.
 
 use std::sync::{mpsc, Arc, OnceLock};
 

@@ -1,0 +1,160 @@
+//! The `misslam` binary end to end: validate, plugins, run with a saved Rerun recording.
+
+mod common;
+
+use std::process::Command;
+
+fn misslam() -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_misslam"));
+    c.current_dir(env!("CARGO_MANIFEST_DIR"));
+    c
+}
+
+#[test]
+fn validate_accepts_and_rejects_with_one_located_line() {
+    let ok = misslam()
+        .args(["validate", "graphs/inspect.toml"])
+        .output()
+        .unwrap();
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    assert!(String::from_utf8_lossy(&ok.stdout)
+        .contains("graphs/inspect.toml: ok (3 nodes in 3 levels)"));
+
+    let bad = misslam()
+        .args(["validate", "tests/graphs/invalid/type_mismatch.toml"])
+        .output()
+        .unwrap();
+    assert_eq!(bad.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&bad.stderr);
+    let first = err.lines().next().unwrap_or_default();
+    assert_eq!(
+        first,
+        "error: tests/graphs/invalid/type_mismatch.toml:8:20: node `files`: input `depth` takes depth, but `src.left` is image"
+    );
+
+    let bad_set = misslam()
+        .args(["validate", "graphs/inspect.toml", "--set", "src.step=zero"])
+        .output()
+        .unwrap();
+    assert!(!bad_set.status.success());
+    assert!(String::from_utf8_lossy(&bad_set.stderr).contains("--set src.step=zero"));
+}
+
+#[test]
+fn plugins_lists_and_describes() {
+    let out = misslam().arg("plugins").output().unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    for id in ["source.stereo_folder", "sink.files", "image.gray"] {
+        assert!(text.contains(id), "{id} missing from:\n{text}");
+    }
+    let out = misslam().args(["plugins", "image.gray"]).output().unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("device: \"cpu\" | \"gpu\" | \"auto\" = \"cpu\""),
+        "{text}"
+    );
+    assert!(
+        text.contains("image (image)") && text.contains("gray (image)"),
+        "{text}"
+    );
+    let out = misslam()
+        .args(["plugins", "depth.nothing"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("no plugin `depth.nothing`"));
+}
+
+#[test]
+fn bad_rerun_mode_is_a_one_line_error() {
+    let out = misslam()
+        .args(["run", "graphs/inspect.toml", "--rerun", "view"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.starts_with("error: --rerun `view`: expected save:PATH.rrd"),
+        "{err}"
+    );
+}
+
+#[test]
+fn inspect_on_hamlyn_saves_a_recording_the_rerun_cli_verifies() {
+    let Some(data) = common::data_set("hamlyn20") else {
+        return;
+    };
+    let out_dir = common::tmp_dir("inspect");
+    let rrd = out_dir.join("out.rrd");
+    let out = misslam()
+        .args(["run", "graphs/inspect.toml", "--quiet", "--set"])
+        .arg(format!("src.path={}", data.display()))
+        .arg("--out")
+        .arg(&out_dir)
+        .arg("--rerun")
+        .arg(format!("save:{}", rrd.display()))
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let metrics: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out_dir.join("metrics.json")).unwrap())
+            .unwrap();
+    assert_eq!(metrics["frames"]["processed"], 17);
+    assert_eq!(metrics["frames"]["skipped"], 0);
+    assert!(out_dir.join("files/left/000016.png").is_file());
+    assert!(out_dir.join("files/image/000000.png").is_file());
+    assert!(
+        std::fs::metadata(&rrd).unwrap().len() > 1_000_000,
+        "17 pairs of images are in it"
+    );
+
+    let Some(rerun) = common::rerun_cli() else {
+        println!("skipped the recording check: no rerun CLI (pip install rerun-sdk==0.36.3, or set MISSLAM_RERUN_BIN)");
+        return;
+    };
+    let verify = Command::new(&rerun)
+        .args(["rrd", "verify"])
+        .arg(&rrd)
+        .output()
+        .unwrap();
+    assert!(
+        verify.status.success(),
+        "rerun rrd verify: {}{}",
+        String::from_utf8_lossy(&verify.stdout),
+        String::from_utf8_lossy(&verify.stderr)
+    );
+    let print = |flag: &str| {
+        let out = Command::new(&rerun)
+            .args(["rrd", "print", flag])
+            .arg(&rrd)
+            .output()
+            .unwrap();
+        assert!(out.status.success());
+        String::from_utf8_lossy(&out.stdout).into_owned()
+    };
+    // `-v` lists entity@component per chunk; `-vv` prints the tables with their index columns.
+    let text = print("-v");
+    let tables = print("-vv");
+    for timeline in ["index_name: frame", "index_name: input_time"] {
+        assert!(tables.contains(timeline), "timeline `{timeline}` missing");
+    }
+    for needle in [
+        "/src/stereo/left@Image:buffer",
+        "/src/stereo/left@Pinhole:image_from_camera",
+        "/src/stereo/right@Transform3D:translation",
+        "/gray/gray@Image:buffer",
+        "/graph@TextDocument:text",
+        "/timing/src@Scalars:scalars",
+    ] {
+        assert!(text.contains(needle), "`{needle}` not in the recording");
+    }
+    assert!(!text.contains("/files/"), "`files` has log = false");
+}

@@ -1,0 +1,49 @@
+//! Helpers shared by the integration tests.
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+
+/// `../shared/data` beside the checkout, when present.
+pub fn shared_data() -> Option<PathBuf> {
+    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data");
+    p.is_dir().then_some(p)
+}
+
+/// A sequence folder under `../shared/data`, or a printed reason to skip.
+pub fn data_set(name: &str) -> Option<PathBuf> {
+    match shared_data().map(|d| d.join(name)).filter(|p| p.is_dir()) {
+        Some(p) => Some(p),
+        None => {
+            println!("skipped: ../shared/data/{name} is absent");
+            None
+        }
+    }
+}
+
+/// A fresh temporary folder for one test.
+pub fn tmp_dir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("misslam-test-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).expect("create temp dir");
+    d
+}
+
+/// The `rerun` CLI (0.36.3, from `pip install rerun-sdk==0.36.3`): `MISSLAM_RERUN_BIN`, else `rerun`
+/// on the PATH, when it answers `--version`.
+pub fn rerun_cli() -> Option<PathBuf> {
+    let bin =
+        std::env::var_os("MISSLAM_RERUN_BIN").map_or_else(|| PathBuf::from("rerun"), PathBuf::from);
+    let out = std::process::Command::new(&bin)
+        .arg("--version")
+        .output()
+        .ok()?;
+    let version = String::from_utf8_lossy(&out.stdout).into_owned();
+    if !version.contains("0.36.3") {
+        println!(
+            "note: {} reports `{}`, not 0.36.3",
+            bin.display(),
+            version.trim()
+        );
+    }
+    out.status.success().then_some(bin)
+}

@@ -1,0 +1,369 @@
+//! The scheduler on graphs of small custom nodes: order, sharing, policies, panics, metrics.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use misslam::framework::graph::{self, ErrorPolicy};
+use misslam::framework::{
+    BuildContext, FloatMap, Flow, FrameInfo, Inputs, Metrics, Node, NodeContext, NodeError,
+    NodeResult, Outputs, PortSpec, PortType, Registry, RunError, RunOptions, Runtime, TypedPlugin,
+};
+
+/// Emits a 1x1 map holding the frame index; ends after `frames` frames.
+#[derive(serde::Serialize, serde::Deserialize, schemars::JsonSchema, Default)]
+#[serde(deny_unknown_fields, default)]
+struct CounterParams {
+    /// Frames before the end of the stream.
+    frames: u64,
+}
+
+struct Counter {
+    frames: u64,
+}
+
+fn map_of(v: f32) -> misslam::framework::DisparityMap {
+    misslam::framework::DisparityMap {
+        map: FloatMap {
+            width: 1,
+            height: 1,
+            data: vec![v],
+        },
+        calib: misslam::framework::StereoCalib {
+            width: 1,
+            height: 1,
+            fx: 1.0,
+            fy: 1.0,
+            cx: 0.0,
+            cy: 0.0,
+            cx_right: 0.0,
+            baseline_mm: 1.0,
+        },
+    }
+}
+
+impl Node for Counter {
+    fn process(
+        &mut self,
+        _: &mut NodeContext,
+        f: FrameInfo,
+        _: &Inputs,
+        out: &mut Outputs,
+    ) -> NodeResult<Flow> {
+        if f.index >= self.frames {
+            return Ok(Flow::EndOfStream);
+        }
+        out.put("value", map_of(f.index as f32))?;
+        Ok(Flow::Continue)
+    }
+}
+
+/// Adds `add` to its input; fails or panics on a chosen frame; records what it saw.
+#[derive(serde::Serialize, serde::Deserialize, schemars::JsonSchema, Default)]
+#[serde(deny_unknown_fields, default)]
+struct StepParams {
+    /// Added to the input.
+    add: f32,
+    /// Return an error on this frame.
+    fail_on: Option<u64>,
+    /// Panic on this frame.
+    panic_on: Option<u64>,
+    /// Wait for a partner node to run at the same time (parallel test).
+    rendezvous: bool,
+}
+
+struct Step {
+    p: StepParams,
+    log: Arc<Mutex<Vec<(String, u64, f32, usize)>>>,
+    rendezvous: Arc<AtomicUsize>,
+    evals: usize,
+}
+
+impl Node for Step {
+    fn process(
+        &mut self,
+        ctx: &mut NodeContext,
+        f: FrameInfo,
+        inp: &Inputs,
+        out: &mut Outputs,
+    ) -> NodeResult<Flow> {
+        if self.p.fail_on == Some(f.index) {
+            return Err(NodeError::msg("bad input on purpose"));
+        }
+        if self.p.panic_on == Some(f.index) {
+            panic!("deliberate panic");
+        }
+        if self.p.rendezvous {
+            // Both partners must be inside `process` at once: only possible if they run in parallel.
+            self.rendezvous.fetch_add(1, Ordering::SeqCst);
+            let t = Instant::now();
+            while self.rendezvous.load(Ordering::SeqCst) < 2 * (f.ordinal as usize + 1) {
+                if t.elapsed() > Duration::from_secs(10) {
+                    return Err(NodeError::msg("partner never ran concurrently"));
+                }
+                std::hint::spin_loop();
+            }
+        }
+        let v = inp.get::<misslam::framework::DisparityMap>("value")?;
+        let ptr = Arc::as_ptr(v) as usize;
+        self.log
+            .lock()
+            .unwrap()
+            .push((ctx.id.to_owned(), f.index, v.map.data[0], ptr));
+        out.put("value", map_of(v.map.data[0] + self.p.add))?;
+        let mut m = Metrics::default();
+        m.values.insert("value".into(), v.map.data[0] as f64);
+        out.put("metrics", m)?;
+        self.evals += 1;
+        Ok(Flow::Continue)
+    }
+
+    fn finish(&mut self, ctx: &mut NodeContext) -> NodeResult<()> {
+        ctx.report_eval(&format!("{}.frames", ctx.id), self.evals as f64);
+        Ok(())
+    }
+}
+
+type Log = Arc<Mutex<Vec<(String, u64, f32, usize)>>>;
+
+fn registry(log: Log) -> Registry {
+    let mut r = Registry::new();
+    r.register(TypedPlugin::new(
+        "test.counter",
+        "counts frames",
+        vec![],
+        vec![PortSpec::new("value", PortType::Disparity, "")],
+        |p: CounterParams, _: &BuildContext| Ok(Counter { frames: p.frames }),
+    ))
+    .unwrap();
+    let rendezvous = Arc::new(AtomicUsize::new(0));
+    r.register(TypedPlugin::new(
+        "test.step",
+        "adds",
+        vec![PortSpec::new("value", PortType::Disparity, "")],
+        vec![
+            PortSpec::new("value", PortType::Disparity, ""),
+            PortSpec::new("metrics", PortType::Metrics, ""),
+        ],
+        move |p: StepParams, _: &BuildContext| {
+            Ok(Step {
+                p,
+                log: log.clone(),
+                rendezvous: rendezvous.clone(),
+                evals: 0,
+            })
+        },
+    ))
+    .unwrap();
+    r
+}
+
+fn out_dir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("misslam-runtime-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+const DIAMOND: &str = r#"
+[graph]
+name = "diamond"
+on_error = "skip_frame"
+
+[[node]]
+id = "src"
+plugin = "test.counter"
+params = { frames = 5 }
+
+[[node]]
+id = "left"
+plugin = "test.step"
+inputs = { value = "src.value" }
+params = { add = 1.0 }
+
+[[node]]
+id = "right"
+plugin = "test.step"
+inputs = { value = "src.value" }
+params = { add = 10.0 }
+
+[[node]]
+id = "join"
+plugin = "test.step"
+inputs = { value = "left.value" }
+"#;
+
+fn run(
+    text: &str,
+    sets: &[&str],
+    name: &str,
+) -> (
+    misslam::framework::RunReport,
+    Vec<(String, u64, f32, usize)>,
+) {
+    let log: Log = Arc::default();
+    let reg = registry(log.clone());
+    let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+    let g = graph::parse(Path::new("test.toml"), text, &reg, &sets).expect("valid graph");
+    let rt = Runtime::build(g).expect("built");
+    let report = rt
+        .run(RunOptions {
+            out_dir: Some(out_dir(name)),
+            ..Default::default()
+        })
+        .expect("ran");
+    let entries = log.lock().unwrap().clone();
+    (report, entries)
+}
+
+#[test]
+fn runs_in_dependency_order_and_shares_payloads() {
+    let (report, log) = run(DIAMOND, &[], "order");
+    assert!(report.error.is_none());
+    assert_eq!(report.metrics.frames.processed, 5);
+    for frame in 0..5u64 {
+        let seen: Vec<_> = log.iter().filter(|e| e.1 == frame).collect();
+        let by = |id: &str| seen.iter().find(|e| e.0 == id).copied().expect("node ran");
+        assert_eq!(by("left").2, frame as f32);
+        assert_eq!(by("right").2, frame as f32);
+        assert_eq!(by("join").2, frame as f32 + 1.0, "join sees left's output");
+        // Both consumers of src.value got the same allocation: no deep copy.
+        assert_eq!(by("left").3, by("right").3);
+    }
+    // Evaluation figures from finish land under eval.
+    assert_eq!(report.metrics.eval.get("join.frames"), Some(&5.0));
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report.metrics_path).unwrap()).unwrap();
+    assert_eq!(json["frames"]["processed"], 5);
+    for node in ["src", "left", "right", "join", "_frame"] {
+        let t = &json["timing_ms"][node];
+        assert_eq!(t["frames"], 5, "{node}");
+        for k in ["mean_ms", "median_ms", "p95_ms"] {
+            assert!(t[k].as_f64().is_some_and(|v| v >= 0.0), "{node}.{k}");
+        }
+    }
+    assert_eq!(json["params"]["right"]["add"], 10.0);
+}
+
+#[test]
+fn same_graph_same_outputs() {
+    let (_, a) = run(DIAMOND, &[], "det_a");
+    let (_, b) = run(DIAMOND, &[], "det_b");
+    let values = |l: &[(String, u64, f32, usize)]| {
+        let mut v: Vec<(String, u64, u32)> = l
+            .iter()
+            .map(|e| (e.0.clone(), e.1, e.2.to_bits()))
+            .collect();
+        v.sort();
+        v
+    };
+    assert_eq!(values(&a), values(&b));
+}
+
+#[test]
+fn skip_frame_policy_skips_and_records() {
+    let (report, log) = run(DIAMOND, &["left.fail_on=2"], "skip");
+    assert!(report.error.is_none());
+    assert_eq!(report.metrics.frames.processed, 4);
+    assert_eq!(report.metrics.frames.skipped, 1);
+    let s = &report.metrics.frames.skipped_frames[0];
+    assert_eq!(
+        (s.frame, s.node.as_str(), s.error.as_str()),
+        (2, "left", "bad input on purpose")
+    );
+    assert!(
+        !log.iter().any(|e| e.0 == "join" && e.1 == 2),
+        "downstream of a failure does not run"
+    );
+    assert!(
+        log.iter().any(|e| e.0 == "join" && e.1 == 3),
+        "the next frame runs"
+    );
+}
+
+#[test]
+fn abort_policy_stops_and_still_writes_metrics() {
+    let (report, _) = run(
+        DIAMOND,
+        &["graph.on_error=abort", "right.fail_on=3"],
+        "abort",
+    );
+    let err = report.error.expect("aborted");
+    assert!(
+        matches!(&err, RunError::Frame { frame: 3, node, .. } if node == "right"),
+        "{err}"
+    );
+    assert_eq!(
+        err.to_string(),
+        "frame 3: node `right`: bad input on purpose"
+    );
+    assert_eq!(report.metrics.frames.processed, 3);
+    let json = std::fs::read_to_string(&report.metrics_path).expect("metrics written after abort");
+    assert!(json.contains("\"aborted\": \"frame 3: node `right`: bad input on purpose\""));
+    // finish ran after the abort: its evaluation figure is there.
+    assert_eq!(report.metrics.eval.get("join.frames"), Some(&3.0));
+}
+
+#[test]
+fn a_panicking_node_is_reported_not_fatal() {
+    let (report, _) = run(DIAMOND, &["join.panic_on=1"], "panic");
+    assert!(report.error.is_none());
+    assert_eq!(report.metrics.frames.skipped, 1);
+    let s = &report.metrics.frames.skipped_frames[0];
+    assert_eq!((s.frame, s.node.as_str()), (1, "join"));
+    assert_eq!(s.error, "panicked: deliberate panic");
+    assert_eq!(report.metrics.frames.processed, 4);
+}
+
+#[test]
+fn frame_range_and_count() {
+    let (report, log) = run(
+        DIAMOND,
+        &["graph.frames.start=1", "graph.frames.count=2"],
+        "range",
+    );
+    assert_eq!(report.metrics.frames.processed, 2);
+    let frames: Vec<u64> = log.iter().filter(|e| e.0 == "join").map(|e| e.1).collect();
+    assert_eq!(frames, [1, 2]);
+}
+
+#[test]
+fn independent_branches_run_in_parallel() {
+    if std::thread::available_parallelism().map_or(1, |n| n.get()) < 2 {
+        println!("skipped: one CPU, nothing can run in parallel");
+        return;
+    }
+    let (report, _) = run(
+        DIAMOND,
+        &[
+            "left.rendezvous=true",
+            "right.rendezvous=true",
+            "graph.frames.count=3",
+        ],
+        "par",
+    );
+    assert!(report.error.is_none());
+    assert_eq!(
+        report.metrics.frames.skipped, 0,
+        "{:?}",
+        report.metrics.frames.skipped_frames
+    );
+    assert_eq!(report.metrics.frames.processed, 3);
+}
+
+#[test]
+fn policy_names_parse() {
+    let reg = registry(Arc::default());
+    let g = graph::parse(Path::new("t.toml"), DIAMOND, &reg, &[]).unwrap();
+    assert_eq!(g.on_error, ErrorPolicy::SkipFrame);
+    let levels: Vec<(String, usize)> = g.nodes.iter().map(|n| (n.id.clone(), n.level)).collect();
+    assert_eq!(
+        levels,
+        [
+            ("src".into(), 0),
+            ("left".into(), 1),
+            ("right".into(), 1),
+            ("join".into(), 2)
+        ]
+    );
+}

@@ -1,0 +1,59 @@
+//! Every WGSL file under `shaders/` parses and validates with naga (the compiler wgpu uses).
+
+use std::path::{Path, PathBuf};
+
+fn wgsl_files(dir: &Path, out: &mut Vec<PathBuf>) {
+    for entry in std::fs::read_dir(dir).expect("shaders folder") {
+        let p = entry.expect("entry").path();
+        if p.is_dir() {
+            wgsl_files(&p, out);
+        } else if p.extension().is_some_and(|e| e == "wgsl") {
+            out.push(p);
+        }
+    }
+}
+
+#[test]
+fn all_shaders_validate() {
+    let mut files = Vec::new();
+    wgsl_files(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join("shaders"),
+        &mut files,
+    );
+    assert!(!files.is_empty(), "no shaders found");
+    let mut failures = Vec::new();
+    for f in &files {
+        let src = std::fs::read_to_string(f).expect("read shader");
+        let module = match naga::front::wgsl::parse_str(&src) {
+            Ok(m) => m,
+            Err(e) => {
+                failures.push(e.emit_to_string_with_path(&src, &f.display().to_string()));
+                continue;
+            }
+        };
+        let mut v = naga::valid::Validator::new(
+            naga::valid::ValidationFlags::all(),
+            naga::valid::Capabilities::default(),
+        );
+        if let Err(e) = v.validate(&module) {
+            failures.push(e.emit_to_string_with_path(&src, &f.display().to_string()));
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+#[test]
+fn a_broken_shader_is_caught() {
+    let src = "@compute @workgroup_size(1) fn main() { let x: u32 = 1.5; }";
+    let module = naga::front::wgsl::parse_str(src);
+    let invalid = match module {
+        Err(_) => true,
+        Ok(m) => naga::valid::Validator::new(
+            naga::valid::ValidationFlags::all(),
+            naga::valid::Capabilities::default(),
+        )
+        .validate(&m)
+        .is_err(),
+    };
+    assert!(invalid, "the validator must reject a type error");
+}
