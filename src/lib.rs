@@ -2,6 +2,8 @@
 //! `misslam-framework`. Integration tests and examples of the workspace live in this package.
 #![deny(missing_docs)]
 
+pub mod bench;
+
 pub use misslam_framework as framework;
 
 use misslam_framework::Registry;

@@ -56,6 +56,30 @@ enum Command {
     Plugins {
         /// A plugin id, e.g. `source.stereo_folder`.
         id: Option<String>,
+        /// Also load the plugins of this library (repeatable).
+        #[arg(long = "library", value_name = "PATH")]
+        libraries: Vec<PathBuf>,
+    },
+    /// Benchmarks.
+    Bench {
+        #[command(subcommand)]
+        which: BenchCommand,
+    },
+}
+
+#[derive(Subcommand)]
+enum BenchCommand {
+    /// The scheduler's own cost per node per frame (budget: 50 us), on trivial nodes.
+    RuntimeOverhead {
+        /// Pass-through nodes per graph.
+        #[arg(long, default_value_t = 32)]
+        nodes: usize,
+        /// Frames per configuration.
+        #[arg(long, default_value_t = 5000)]
+        frames: u64,
+        /// Also write the rows as JSON here.
+        #[arg(long)]
+        out: Option<PathBuf>,
     },
 }
 
@@ -84,16 +108,52 @@ fn main() -> ExitCode {
 }
 
 fn run(command: Command) -> anyhow::Result<()> {
-    let registry = misslam::builtin_registry();
+    let mut registry = misslam::builtin_registry();
+    if let Command::Plugins { libraries, .. } = &command {
+        for lib in libraries {
+            let plugin =
+                misslam_framework::dynamic::load_library(lib).map_err(anyhow::Error::msg)?;
+            registry.register_arc(plugin).map_err(anyhow::Error::msg)?;
+        }
+    }
     match command {
-        Command::Plugins { id: None } => {
+        Command::Bench {
+            which: BenchCommand::RuntimeOverhead { nodes, frames, out },
+        } => {
+            let dir = std::env::temp_dir().join(format!("misslam-bench-{}", std::process::id()));
+            let rows = misslam::bench::runtime_overhead(nodes, frames, &dir)
+                .map_err(anyhow::Error::msg)?;
+            let _ = std::fs::remove_dir_all(&dir);
+            println!(
+                "{:<6} {:>6} {:>8} {:>9} {:>11} {:>13} {:>10}",
+                "shape", "nodes", "frames", "parallel", "frame us", "us/node/frame", "x budget"
+            );
+            for r in &rows {
+                println!(
+                    "{:<6} {:>6} {:>8} {:>9} {:>11.2} {:>13.3} {:>10.4}",
+                    r.shape,
+                    r.nodes,
+                    r.frames,
+                    r.parallel,
+                    r.frame_us,
+                    r.per_node_us,
+                    r.budget_ratio
+                );
+            }
+            if let Some(path) = out {
+                std::fs::write(&path, serde_json::to_string_pretty(&rows)?)
+                    .with_context(|| format!("writing {}", path.display()))?;
+            }
+            Ok(())
+        }
+        Command::Plugins { id: None, .. } => {
             for p in registry.iter() {
                 let info = p.info();
                 println!("{:<24} {}", info.id, info.summary);
             }
             Ok(())
         }
-        Command::Plugins { id: Some(id) } => {
+        Command::Plugins { id: Some(id), .. } => {
             let text = registry.describe(&id).with_context(|| {
                 let ids: Vec<&str> = registry.ids().collect();
                 format!("no plugin `{id}`; known: {}", ids.join(", "))

@@ -158,3 +158,36 @@ fn inspect_on_hamlyn_saves_a_recording_the_rerun_cli_verifies() {
     }
     assert!(!text.contains("/files/"), "`files` has log = false");
 }
+
+#[test]
+fn runtime_overhead_bench_writes_its_rows() {
+    let dir = common::tmp_dir("bench");
+    let json = dir.join("overhead.json");
+    let out = misslam()
+        .args([
+            "bench",
+            "runtime-overhead",
+            "--nodes",
+            "3",
+            "--frames",
+            "20",
+            "--out",
+        ])
+        .arg(&json)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let rows: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let rows = rows.as_array().unwrap();
+    assert_eq!(rows.len(), 3);
+    for r in rows {
+        assert_eq!(r["nodes"], 3);
+        assert_eq!(r["frames"], 20);
+        assert!(r["per_node_us"].as_f64().unwrap() > 0.0);
+    }
+}

@@ -25,8 +25,10 @@ fn make_folder(name: &str, n: u32) -> std::path::PathBuf {
             }
         });
         // File numbers start at 10 and skip by 10, like sparse real sequences.
-        img.save(d.join("left").join(format!("{}.png", 10 * (i + 1)))).unwrap();
-        img.save(d.join("right").join(format!("{}.png", 10 * (i + 1)))).unwrap();
+        img.save(d.join("left").join(format!("{}.png", 10 * (i + 1))))
+            .unwrap();
+        img.save(d.join("right").join(format!("{}.png", 10 * (i + 1))))
+            .unwrap();
     }
     d
 }
@@ -53,27 +55,52 @@ fn reads_pairs_in_numeric_order_with_masks() {
     assert_eq!(pair.timestamp, 20.0 / 30.0);
     assert_eq!(pair.left.data[3..6], [21, 0, 100]);
     let mask = pair.left_mask.unwrap();
-    assert_eq!(mask.data.iter().filter(|&&v| v == 0).count(), 6, "the black column");
+    assert_eq!(
+        mask.data.iter().filter(|&&v| v == 0).count(),
+        6,
+        "the black column"
+    );
     assert!(f.read(12).is_none(), "past the end");
 }
 
 #[test]
 fn calibration_that_does_not_fit_is_refused() {
     let d = make_folder("size", 2);
-    std::fs::write(d.join("calib.toml"), CALIB.replace("width = 8", "width = 640")).unwrap();
+    std::fs::write(
+        d.join("calib.toml"),
+        CALIB.replace("width = 8", "width = 640"),
+    )
+    .unwrap();
     let e = open(&d).err().unwrap();
-    assert!(e.contains("says 640x6, but") && e.contains("is 8x6: the calibration does not fit"), "{e}");
+    assert!(
+        e.contains("says 640x6, but") && e.contains("is 8x6: the calibration does not fit"),
+        "{e}"
+    );
 }
 
 #[test]
 fn nan_or_missing_calibration_fields_name_the_field() {
     let d = make_folder("nan", 1);
-    std::fs::write(d.join("calib.toml"), CALIB.replace("fx = 100.0", "fx = nan")).unwrap();
+    std::fs::write(
+        d.join("calib.toml"),
+        CALIB.replace("fx = 100.0", "fx = nan"),
+    )
+    .unwrap();
     let e = open(&d).err().unwrap();
-    assert!(e.ends_with("calib.toml: `fx` is NaN, not a finite number"), "{e}");
-    std::fs::write(d.join("calib.toml"), CALIB.replace("baseline_mm = 5.0\n", "")).unwrap();
+    assert!(
+        e.ends_with("calib.toml: `fx` is NaN, not a finite number"),
+        "{e}"
+    );
+    std::fs::write(
+        d.join("calib.toml"),
+        CALIB.replace("baseline_mm = 5.0\n", ""),
+    )
+    .unwrap();
     let e = open(&d).err().unwrap();
-    assert!(e.contains("calib.toml: line 1: missing field `baseline_mm`"), "{e}");
+    assert!(
+        e.contains("calib.toml: line 1: missing field `baseline_mm`"),
+        "{e}"
+    );
     std::fs::remove_file(d.join("calib.toml")).unwrap();
     let e = open(&d).err().unwrap();
     assert!(e.contains("has no calib.toml, calib.txt or *.yaml"), "{e}");
@@ -106,12 +133,26 @@ fn missing_and_corrupt_frames_follow_the_error_policy() {
         .collect();
     assert_eq!(skipped.len(), 2);
     assert_eq!(skipped[0].0, 2);
-    assert!(skipped[0].1.ends_with("right/30.png is missing"), "{}", skipped[0].1);
+    assert!(
+        skipped[0].1.ends_with("right/30.png is missing"),
+        "{}",
+        skipped[0].1
+    );
     assert_eq!(skipped[1].0, 4);
-    assert!(skipped[1].1.contains("left/50.png: cannot decode"), "{}", skipped[1].1);
+    assert!(
+        skipped[1].1.contains("left/50.png: cannot decode"),
+        "{}",
+        skipped[1].1
+    );
 
     // Under abort the same folder stops at frame 2 with the file named.
-    let g = graph::parse(Path::new("t.toml"), &text.replace("skip_frame", "abort"), &builtin_registry(), &[]).unwrap();
+    let g = graph::parse(
+        Path::new("t.toml"),
+        &text.replace("skip_frame", "abort"),
+        &builtin_registry(),
+        &[],
+    )
+    .unwrap();
     let report = Runtime::build(g)
         .unwrap()
         .run(RunOptions {
@@ -120,7 +161,10 @@ fn missing_and_corrupt_frames_follow_the_error_policy() {
         })
         .unwrap();
     let e = report.error.unwrap().to_string();
-    assert!(e.starts_with("frame 2: node `src`: ") && e.ends_with("right/30.png is missing"), "{e}");
+    assert!(
+        e.starts_with("frame 2: node `src`: ") && e.ends_with("right/30.png is missing"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -128,12 +172,17 @@ fn missing_folder_is_a_build_error_naming_the_node() {
     let text = "[[node]]\nid = \"src\"\nplugin = \"source.stereo_folder\"\nparams = { path = \"/no/such/folder\" }\n";
     let g = graph::parse(Path::new("t.toml"), text, &builtin_registry(), &[]).unwrap();
     let e = Runtime::build(g).err().unwrap().to_string();
-    assert_eq!(e, "t.toml: node `src` (source.stereo_folder): `path`: /no/such/folder is not a folder");
+    assert_eq!(
+        e,
+        "t.toml: node `src` (source.stereo_folder): `path`: /no/such/folder is not a folder"
+    );
 }
 
 #[test]
 fn hamlyn_sequence_with_its_border() {
-    let Some(dir) = common::data_set("hamlyn20") else { return };
+    let Some(dir) = common::data_set("hamlyn20") else {
+        return;
+    };
     let f = open(&dir).unwrap();
     assert_eq!(f.len(), 17);
     assert_eq!((f.calib().width, f.calib().height), (720, 288));
@@ -163,7 +212,9 @@ fn hamlyn_sequence_with_its_border() {
 #[test]
 fn colonsyn_sequences_open() {
     for set in ["colonsyn30", "colonsyn31"] {
-        let Some(dir) = common::data_set(set) else { return };
+        let Some(dir) = common::data_set(set) else {
+            return;
+        };
         let f = open(&dir).unwrap();
         assert!(f.len() >= 10, "{set}: {}", f.len());
         assert_eq!((f.calib().width, f.calib().height), (640, 480));
