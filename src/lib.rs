@@ -8,19 +8,56 @@ pub use misslam_framework as framework;
 
 use misslam_framework::Registry;
 
-/// Every built-in plugin.
+/// The registration function every plugin crate exports.
+pub type RegisterFn = fn(&mut Registry) -> Result<(), String>;
+
+/// Every built-in plugin crate, in the order `misslam plugins` does not depend on (ids sort).
+pub const BUILTIN: &[RegisterFn] = &[
+    misslam_source_stereo_folder::register,
+    misslam_sink_files::register,
+    misslam_image_gray::register,
+];
+
+/// Every built-in plugin; an id clash is an error naming both.
+pub fn try_builtin_registry() -> Result<Registry, String> {
+    let mut r = Registry::new();
+    for register in BUILTIN {
+        register(&mut r)?;
+    }
+    Ok(r)
+}
+
+/// Every built-in plugin. A clash (a programming error, caught by this crate's tests) is logged
+/// and the later plugin left out.
 pub fn builtin_registry() -> Registry {
     let mut r = Registry::new();
-    let all: [fn(&mut Registry) -> Result<(), String>; 3] = [
-        misslam_source_stereo_folder::register,
-        misslam_sink_files::register,
-        misslam_image_gray::register,
-    ];
-    for register in all {
-        // Ids are distinct by construction; a clash is a programming error caught by the tests.
+    for register in BUILTIN {
         if let Err(e) = register(&mut r) {
             tracing::error!("{e}");
         }
     }
     r
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn builtin_plugins_register_without_clashes() {
+        let r = super::try_builtin_registry().expect("no id clash");
+        let ids: Vec<&str> = r.ids().collect();
+        assert_eq!(ids, ["image.gray", "sink.files", "source.stereo_folder"]);
+        for p in r.iter() {
+            let info = p.info();
+            assert!(info.id.contains('.'), "{}", info.id);
+            assert!(!info.summary.is_empty(), "{} has no summary", info.id);
+            for param in &info.params {
+                assert!(
+                    !param.doc.is_empty(),
+                    "{}: parameter `{}` has no doc",
+                    info.id,
+                    param.name
+                );
+            }
+        }
+    }
 }

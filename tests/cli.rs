@@ -1,4 +1,5 @@
 //! The `misslam` binary end to end: validate, plugins, run with a saved Rerun recording.
+#![allow(clippy::unwrap_used)] // test code: a failed unwrap is the test failing
 
 mod common;
 

@@ -1,5 +1,6 @@
 //! Builds the out-of-tree plugin in `examples/dynamic_plugin` with cargo, loads it from a graph,
 //! and checks the handshake's refusals (wrong ABI, missing file, not a plugin) and panic reports.
+#![allow(clippy::unwrap_used)] // test code: a failed unwrap is the test failing
 
 mod common;
 

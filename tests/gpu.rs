@@ -1,6 +1,7 @@
 //! GPU code on whatever adapter exists: in CI, Mesa's software Vulkan (lavapipe). Where no
 //! adapter exists the tests say so and pass, unless `MISSLAM_REQUIRE_GPU=1` (CI sets it, so a
 //! missing driver fails CI instead of hiding).
+#![allow(clippy::unwrap_used)] // test code: a failed unwrap is the test failing
 
 mod common;
 

@@ -3,6 +3,7 @@
 //! field). `# set: node.param=value` lines at the top of a file are applied as `--set` overrides.
 //! Run with `MISSLAM_BLESS=1` to rewrite the `.err` files after a deliberate change, then review
 //! the diff.
+#![allow(clippy::unwrap_used)] // test code: a failed unwrap is the test failing
 
 use std::path::{Path, PathBuf};
 

@@ -1,4 +1,5 @@
 //! The scheduler on graphs of small custom nodes: order, sharing, policies, panics, metrics.
+#![allow(clippy::unwrap_used)] // test code: a failed unwrap is the test failing
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -59,6 +60,10 @@ impl Node for Counter {
     }
 }
 
+/// (node id, frame, value seen, address of the input payload) per call.
+type Seen = (String, u64, f32, usize);
+type Log = Arc<Mutex<Vec<Seen>>>;
+
 /// Adds `add` to its input; fails or panics on a chosen frame; records what it saw.
 #[derive(serde::Serialize, serde::Deserialize, schemars::JsonSchema, Default)]
 #[serde(deny_unknown_fields, default)]
@@ -75,7 +80,7 @@ struct StepParams {
 
 struct Step {
     p: StepParams,
-    log: Arc<Mutex<Vec<(String, u64, f32, usize)>>>,
+    log: Log,
     rendezvous: Arc<AtomicUsize>,
     evals: usize,
 }
@@ -124,8 +129,6 @@ impl Node for Step {
         Ok(())
     }
 }
-
-type Log = Arc<Mutex<Vec<(String, u64, f32, usize)>>>;
 
 fn registry(log: Log) -> Registry {
     let mut r = Registry::new();
@@ -249,7 +252,7 @@ fn runs_in_dependency_order_and_shares_payloads() {
 fn same_graph_same_outputs() {
     let (_, a) = run(DIAMOND, &[], "det_a");
     let (_, b) = run(DIAMOND, &[], "det_b");
-    let values = |l: &[(String, u64, f32, usize)]| {
+    let values = |l: &[Seen]| {
         let mut v: Vec<(String, u64, u32)> = l
             .iter()
             .map(|e| (e.0.clone(), e.1, e.2.to_bits()))

@@ -1,4 +1,5 @@
 //! Every WGSL file under `shaders/` parses and validates with naga (the compiler wgpu uses).
+#![allow(clippy::unwrap_used)] // test code: a failed unwrap is the test failing
 
 use std::path::{Path, PathBuf};
 

@@ -1,4 +1,5 @@
 //! `source.stereo_folder` on real data and on constructed folders with every kind of bad input.
+#![allow(clippy::unwrap_used)] // test code: a failed unwrap is the test failing
 
 mod common;
 

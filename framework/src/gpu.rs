@@ -218,7 +218,7 @@ impl GrayKernel {
 
     /// Converts interleaved RGB bytes (3 per pixel) to gray, upload and readback included.
     pub fn run(&self, ctx: &GpuContext, rgb: &[u8]) -> Result<Vec<u8>, GpuError> {
-        if rgb.len() % 3 != 0 {
+        if !rgb.len().is_multiple_of(3) {
             return Err(GpuError::Operation(format!(
                 "RGB buffer of {} bytes is not a whole number of pixels",
                 rgb.len()

@@ -35,7 +35,7 @@ pub enum RunError {
         /// Plugin id.
         plugin: String,
         /// Cause.
-        error: BuildError,
+        error: Box<BuildError>,
     },
     /// A node failed in `start` or `finish`.
     #[error("node `{node}` failed in {phase}: {message}")]
@@ -70,6 +70,9 @@ pub enum RunError {
     Recorder(#[from] RecorderError),
 }
 
+/// Called after each frame with (frames done, frames planned if known).
+pub type ProgressFn = Box<dyn FnMut(u64, Option<u64>) + Send>;
+
 /// Options of one run.
 #[derive(Default)]
 pub struct RunOptions {
@@ -80,7 +83,7 @@ pub struct RunOptions {
     /// Recording, if any.
     pub recorder: Option<Recorder>,
     /// Called after each frame with (frames done, frames planned if known).
-    pub progress: Option<Box<dyn FnMut(u64, Option<u64>) + Send>>,
+    pub progress: Option<ProgressFn>,
 }
 
 /// The result of a run: what it measured, and the error it stopped on (if any).
@@ -139,7 +142,7 @@ impl Runtime {
                 file: graph.file.clone(),
                 node: spec.id.clone(),
                 plugin: info.id.clone(),
-                error,
+                error: Box::new(error),
             })?;
             slots.push(Slot {
                 id: spec.id.clone(),

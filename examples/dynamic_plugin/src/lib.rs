@@ -7,7 +7,9 @@
 
 use std::ffi::c_void;
 
-use misslam_abi::{self as abi, Buffer, BufferDesc, BufferKind, ErrorBuf, OutputSink, PluginVTable, PortDesc, Str};
+use misslam_abi::{
+    self as abi, Buffer, BufferDesc, BufferKind, ErrorBuf, OutputSink, PluginVTable, PortDesc, Str,
+};
 
 struct Invert {
     /// Added to every inverted value (saturating).
@@ -17,16 +19,31 @@ struct Invert {
 }
 
 fn parse_params(text: &str) -> Result<Invert, String> {
-    let mut p = Invert { offset: 0, panic_on_frame: -1 };
+    let mut p = Invert {
+        offset: 0,
+        panic_on_frame: -1,
+    };
     for line in text.lines().map(str::trim).filter(|l| !l.is_empty()) {
-        let (k, v) = line.split_once('=').ok_or_else(|| format!("cannot read `{line}`"))?;
+        let (k, v) = line
+            .split_once('=')
+            .ok_or_else(|| format!("cannot read `{line}`"))?;
         let (k, v) = (k.trim(), v.trim());
         match k {
-            "offset" => p.offset = v.parse().map_err(|_| format!("parameter `offset`: `{v}` is not an integer 0..=255"))?,
-            "panic_on_frame" => {
-                p.panic_on_frame = v.parse().map_err(|_| format!("parameter `panic_on_frame`: `{v}` is not an integer"))?
+            "offset" => {
+                p.offset = v
+                    .parse()
+                    .map_err(|_| format!("parameter `offset`: `{v}` is not an integer 0..=255"))?
             }
-            other => return Err(format!("unknown parameter `{other}`; known: offset, panic_on_frame")),
+            "panic_on_frame" => {
+                p.panic_on_frame = v
+                    .parse()
+                    .map_err(|_| format!("parameter `panic_on_frame`: `{v}` is not an integer"))?
+            }
+            other => {
+                return Err(format!(
+                    "unknown parameter `{other}`; known: offset, panic_on_frame"
+                ))
+            }
         }
     }
     Ok(p)
@@ -90,8 +107,14 @@ unsafe extern "C" fn destroy(state: *mut c_void) {
     }
 }
 
-static INPUTS: [PortDesc; 1] = [PortDesc { name: Str::from_static("image"), kind: BufferKind::Image as u32 }];
-static OUTPUTS: [PortDesc; 1] = [PortDesc { name: Str::from_static("inverted"), kind: BufferKind::Image as u32 }];
+static INPUTS: [PortDesc; 1] = [PortDesc {
+    name: Str::from_static("image"),
+    kind: BufferKind::Image as u32,
+}];
+static OUTPUTS: [PortDesc; 1] = [PortDesc {
+    name: Str::from_static("inverted"),
+    kind: BufferKind::Image as u32,
+}];
 
 static VTABLE: PluginVTable = PluginVTable {
     abi_version: if cfg!(feature = "wrong-abi") { 999 } else { abi::ABI_VERSION },

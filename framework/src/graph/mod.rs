@@ -45,7 +45,7 @@ pub enum ErrorPolicy {
 }
 
 /// Which frames of the input to run.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize, serde::Serialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct FrameRange {
     /// First frame index (default 0).
@@ -54,15 +54,6 @@ pub struct FrameRange {
     /// How many frames at most; all when absent.
     #[serde(default)]
     pub count: Option<u64>,
-}
-
-impl Default for FrameRange {
-    fn default() -> Self {
-        FrameRange {
-            start: 0,
-            count: None,
-        }
-    }
 }
 
 #[derive(Deserialize)]
@@ -86,6 +77,9 @@ struct GraphSection {
     #[serde(default)]
     libraries: Vec<Spanned<String>>,
 }
+
+/// Per input port of one node: its source and the span of the wiring in the file.
+type Wiring = Vec<Option<(Source, Range<usize>)>>;
 
 type SpannedTable = BTreeMap<Spanned<String>, Spanned<toml::Value>>;
 
@@ -404,10 +398,10 @@ pub fn parse(
         .enumerate()
         .map(|(i, p)| (p.id.as_str(), i))
         .collect();
-    let mut wired: Vec<Vec<Option<(Source, Range<usize>)>>> = Vec::with_capacity(pending.len());
+    let mut wired: Vec<Wiring> = Vec::with_capacity(pending.len());
     for p in &pending {
         let info = p.plugin.info();
-        let mut slots: Vec<Option<(Source, Range<usize>)>> = vec![None; info.inputs.len()];
+        let mut slots: Wiring = vec![None; info.inputs.len()];
         for (port, from) in &p.inputs {
             let Some(pi) = info.inputs.iter().position(|s| s.name == *port.get_ref()) else {
                 let known: Vec<String> = info.inputs.iter().map(|s| s.name.clone()).collect();
@@ -628,11 +622,7 @@ fn set_path(table: &mut toml::Table, path: &[String], value: toml::Value) -> Res
     Ok(())
 }
 
-fn find_cycle(
-    wired: &[Vec<Option<(Source, Range<usize>)>>],
-    level: &[usize],
-    ids: &[&str],
-) -> (String, Range<usize>) {
+fn find_cycle(wired: &[Wiring], level: &[usize], ids: &[&str]) -> (String, Range<usize>) {
     // Walk backwards along unresolved inputs from an unresolved node until a node repeats.
     let start = level.iter().position(|&l| l == usize::MAX).unwrap_or(0);
     let mut path = vec![start];

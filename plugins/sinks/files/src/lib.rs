@@ -131,9 +131,11 @@ impl Node for FilesSink {
     ) -> NodeResult<Flow> {
         let root = ctx.out_dir.join(&self.params.dir);
         let stem = format!("{:06}", frame.index);
-        let dense_due = frame.ordinal % self.params.every as u64 == 0;
+        let dense_due = frame.ordinal.is_multiple_of(self.params.every as u64);
         let geom_due = self.params.geometry_every > 0
-            && frame.ordinal % self.params.geometry_every as u64 == 0;
+            && frame
+                .ordinal
+                .is_multiple_of(self.params.geometry_every as u64);
         for (i, spec) in self.ports.iter().enumerate() {
             let Some(payload) = inputs.raw(i) else {
                 continue;

@@ -73,7 +73,7 @@ pub fn write_glb(path: &Path, g: &Geometry) -> io::Result<()> {
     let mut views = Vec::new();
     let mut accessors = Vec::new();
     let mut push_view = |bin: &mut Vec<u8>, bytes: &[u8], target: u32| -> usize {
-        while bin.len() % 4 != 0 {
+        while !bin.len().is_multiple_of(4) {
             bin.push(0);
         }
         let offset = bin.len();
@@ -123,7 +123,7 @@ pub fn write_glb(path: &Path, g: &Geometry) -> io::Result<()> {
         accessors.push(serde_json::json!({"bufferView": v, "componentType": UNSIGNED_INT, "count": g.triangles.len() * 3, "type": "SCALAR"}));
         primitive["indices"] = (accessors.len() - 1).into();
     }
-    while bin.len() % 4 != 0 {
+    while !bin.len().is_multiple_of(4) {
         bin.push(0);
     }
     let doc = serde_json::json!({
@@ -137,7 +137,7 @@ pub fn write_glb(path: &Path, g: &Geometry) -> io::Result<()> {
         "accessors": accessors,
     });
     let mut json = serde_json::to_vec(&doc).map_err(io::Error::other)?;
-    while json.len() % 4 != 0 {
+    while !json.len().is_multiple_of(4) {
         json.push(b' ');
     }
     let total = 12 + 8 + json.len() + 8 + bin.len();
