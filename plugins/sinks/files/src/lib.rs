@@ -296,7 +296,8 @@ mod tests {
         assert_eq!(prim.mode(), gltf::mesh::Mode::Triangles);
         let pos = prim.get(&gltf::Semantic::Positions).unwrap();
         assert_eq!(pos.count(), 3);
-        assert_eq!(pos.max().unwrap()[0].as_f64(), Some(0.01));
+        // 10 mm written in metres, as f32.
+        assert_eq!(pos.max().unwrap()[0].as_f64(), Some(0.01f32 as f64));
         assert!(prim.get(&gltf::Semantic::Colors(0)).is_some());
 
         mesh_io::write_ply(&d.join("m.ply"), &g).unwrap();
