@@ -297,7 +297,8 @@ mod tests {
         let pos = prim.get(&gltf::Semantic::Positions).unwrap();
         assert_eq!(pos.count(), 3);
         // 10 mm written in metres, as f32.
-        assert_eq!(pos.max().unwrap()[0].as_f64(), Some(0.01f32 as f64));
+        let max_x = pos.max().unwrap()[0].as_f64().unwrap();
+        assert!((max_x - 0.01).abs() < 1e-8, "{max_x}");
         assert!(prim.get(&gltf::Semantic::Colors(0)).is_some());
 
         mesh_io::write_ply(&d.join("m.ply"), &g).unwrap();
