@@ -305,7 +305,10 @@ mod tests {
         let ply = std::fs::read(d.join("m.ply")).unwrap();
         let header_end = ply.windows(11).position(|w| w == b"end_header\n").unwrap() + 11;
         let text = String::from_utf8_lossy(&ply[..header_end]);
-        assert!(text.contains("element vertex 3") && text.contains("element face 1"), "{text}");
+        assert!(
+            text.contains("element vertex 3") && text.contains("element face 1"),
+            "{text}"
+        );
         // 3 vertices x (12 + 3) bytes + 1 face x 13 bytes.
         assert_eq!(ply.len() - header_end, 3 * 15 + 13);
     }
