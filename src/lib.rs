@@ -14,6 +14,7 @@ pub type RegisterFn = fn(&mut Registry) -> Result<(), String>;
 /// Every built-in plugin crate, in the order `misslam plugins` does not depend on (ids sort).
 pub const BUILTIN: &[RegisterFn] = &[
     misslam_source_stereo_folder::register,
+    misslam_source_phantom::register,
     misslam_sink_files::register,
     misslam_image_gray::register,
 ];
@@ -45,7 +46,15 @@ mod tests {
     fn builtin_plugins_register_without_clashes() {
         let r = super::try_builtin_registry().expect("no id clash");
         let ids: Vec<&str> = r.ids().collect();
-        assert_eq!(ids, ["image.gray", "sink.files", "source.stereo_folder"]);
+        assert_eq!(
+            ids,
+            [
+                "image.gray",
+                "sink.files",
+                "source.phantom",
+                "source.stereo_folder"
+            ]
+        );
         for p in r.iter() {
             let info = p.info();
             assert!(info.id.contains('.'), "{}", info.id);

@@ -1,0 +1,737 @@
+//! `source.phantom`: a deforming organ rendered as rectified stereo video, with exact ground
+//! truth per frame: depth and disparity of the left view, the scope pose, the surface mesh of
+//! that instant, and for every left pixel the rest-shape point it sees.
+//!
+//! The organ is a procedural surface ([`scene`]) meshed on a regular grid, textured by a
+//! function of the rest surface ([`texture`]) so the texture moves with the tissue, deformed by
+//! heartbeat, breathing and a tool press, lit by a point light at the scope tip (Lambert plus a
+//! Blinn-Phong highlight), and rasterised ([`render`]) into both views. Everything is
+//! deterministic from the seed.
+#![deny(missing_docs)]
+
+pub mod render;
+pub mod scene;
+pub mod texture;
+
+use std::sync::Arc;
+
+use misslam_framework::nalgebra::{Isometry3, Point3, Translation3, Vector3};
+use misslam_framework::{
+    BuildContext, BuildError, DepthMap, DisparityMap, FloatMap, Flow, FrameInfo, Image, Inputs,
+    Mesh, Node, NodeContext, NodeResult, Outputs, PortSpec, PortType, Pose, Registry, StereoCalib,
+    StereoFrame, TrackingState, TypedPlugin, VertexMap,
+};
+
+use render::{Raster, View};
+use scene::{Motion, Scene, Trajectory};
+
+/// Parameters of `source.phantom`.
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// Organ: "heart", "liver", "kidney" or "stomach".
+    pub scene: Scene,
+    /// Length of the sequence in frames (the stream ends after it).
+    pub frames: u64,
+    /// Frame rate, Hz (frame n is at time n / fps).
+    pub fps: f64,
+    /// Seed of texture and noise; the graph's seed when absent.
+    pub seed: Option<u64>,
+    /// Image width, px.
+    pub width: u32,
+    /// Image height, px.
+    pub height: u32,
+    /// Focal length (fx = fy), px.
+    pub focal_px: f64,
+    /// Stereo baseline, mm.
+    pub baseline_mm: f64,
+    /// Distance from the scope to the organ's far plane, mm (its nearest parts come about 25 mm closer).
+    pub distance_mm: f32,
+    /// Size of the tissue patch (x, y), mm.
+    pub extent_mm: [f32; 2],
+    /// Mesh grid spacing, mm.
+    pub mesh_step_mm: f32,
+    /// Scope motion: "static", "sweep" or "fast" (sweep plus a jerk).
+    pub trajectory: Trajectory,
+    /// Sweep amplitude, mm.
+    pub sweep_mm: f32,
+    /// Sweep period, s.
+    pub sweep_period_s: f32,
+    /// Start of the fast segment, s.
+    pub fast_start_s: f32,
+    /// Duration of the fast segment, s.
+    pub fast_duration_s: f32,
+    /// Excursion of the fast segment, mm.
+    pub fast_amplitude_mm: f32,
+    /// Heartbeat peak displacement, mm; the scene's default (heart 3, others 0) when absent.
+    pub heartbeat_mm: Option<f32>,
+    /// Heartbeat rate, Hz.
+    pub heartbeat_hz: f32,
+    /// Breathing peak displacement, mm; the scene's default (heart 1, liver 4, others 2) when absent.
+    pub breathing_mm: Option<f32>,
+    /// Breathing rate, Hz.
+    pub breathing_hz: f32,
+    /// Tool press depth, mm (0: no tool).
+    pub tool_press_mm: f32,
+    /// Tool press centre (x, y) on the tissue patch, mm.
+    pub tool_xy_mm: [f32; 2],
+    /// Tool press radius (Gaussian sigma), mm.
+    pub tool_radius_mm: f32,
+    /// Tool press start, s.
+    pub tool_start_s: f32,
+    /// Tool press duration, s.
+    pub tool_duration_s: f32,
+    /// Vessel spacing of the texture, mm.
+    pub vessel_scale_mm: f32,
+    /// Fraction of the surface (0..1) in low-texture patches.
+    pub low_texture_fraction: f32,
+    /// Ambient light (0..1).
+    pub ambient: f32,
+    /// Strength of the specular highlight (0: matte).
+    pub specular: f32,
+    /// Blinn-Phong exponent of the highlight.
+    pub shininess: f32,
+    /// Sensor noise, standard deviation in 8-bit levels (0: noise-free).
+    pub noise_sigma: f32,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params {
+            scene: Scene::Heart,
+            frames: 300,
+            fps: 30.0,
+            seed: None,
+            width: 640,
+            height: 480,
+            focal_px: 700.0,
+            baseline_mm: 5.0,
+            distance_mm: 90.0,
+            extent_mm: [150.0, 120.0],
+            mesh_step_mm: 1.0,
+            trajectory: Trajectory::Sweep,
+            sweep_mm: 10.0,
+            sweep_period_s: 8.0,
+            fast_start_s: 4.0,
+            fast_duration_s: 0.2,
+            fast_amplitude_mm: 8.0,
+            heartbeat_mm: None,
+            heartbeat_hz: 1.2,
+            breathing_mm: None,
+            breathing_hz: 0.25,
+            tool_press_mm: 0.0,
+            tool_xy_mm: [8.0, 4.0],
+            tool_radius_mm: 6.0,
+            tool_start_s: 2.0,
+            tool_duration_s: 2.0,
+            vessel_scale_mm: 2.5,
+            low_texture_fraction: 0.1,
+            ambient: 0.25,
+            specular: 0.35,
+            shininess: 60.0,
+            noise_sigma: 2.0,
+        }
+    }
+}
+
+/// Everything the phantom knows about one frame.
+#[derive(Clone, Debug)]
+pub struct PhantomFrame {
+    /// The rendered pair.
+    pub stereo: StereoFrame,
+    /// Depth of the left view, mm (NaN where no tissue).
+    pub depth: DepthMap,
+    /// Disparity of the left view, px.
+    pub disparity: DisparityMap,
+    /// The scope pose.
+    pub pose: Pose,
+    /// The surface of this instant, world frame.
+    pub mesh: Mesh,
+    /// Per left pixel, the rest-shape point it sees (world frame at t = 0), NaN where none.
+    pub rest_points: VertexMap,
+}
+
+/// A phantom sequence.
+pub struct Phantom {
+    params: Params,
+    motion: Motion,
+    seed: u64,
+    calib: StereoCalib,
+    /// Rest positions of the grid vertices.
+    rest: Vec<[f32; 3]>,
+    rest_normals: Vec<[f32; 3]>,
+    triangles: Vec<[u32; 3]>,
+    grid: (usize, usize),
+    albedo: Atlas,
+    vertex_colors: Vec<[u8; 3]>,
+    // Scratch reused across frames.
+    cam: Vec<[f32; 3]>,
+    left: Raster,
+    right: Raster,
+}
+
+fn check(ok: bool, field: &str, msg: &str) -> Result<(), String> {
+    if ok {
+        Ok(())
+    } else {
+        Err(format!("`{field}` {msg}"))
+    }
+}
+
+impl Phantom {
+    /// Builds the organ mesh and texture. `graph_seed` is used when `params.seed` is absent.
+    pub fn new(params: Params, graph_seed: u64) -> Result<Self, String> {
+        let p = &params;
+        check(
+            p.width >= 8 && p.height >= 8,
+            "width/height",
+            "must be at least 8 px",
+        )?;
+        check(
+            p.focal_px > 0.0 && p.focal_px.is_finite(),
+            "focal_px",
+            "must be positive",
+        )?;
+        check(
+            p.baseline_mm > 0.0 && p.baseline_mm.is_finite(),
+            "baseline_mm",
+            "must be positive",
+        )?;
+        check(p.fps > 0.0 && p.fps.is_finite(), "fps", "must be positive")?;
+        check(
+            p.distance_mm > 30.0,
+            "distance_mm",
+            "must exceed 30 mm (the organ bulges up to 25 mm toward the scope)",
+        )?;
+        check(
+            p.mesh_step_mm > 0.05 && p.mesh_step_mm <= 10.0,
+            "mesh_step_mm",
+            "must be in (0.05, 10]",
+        )?;
+        check(
+            p.extent_mm.iter().all(|&e| e > 2.0 * p.mesh_step_mm),
+            "extent_mm",
+            "must span several mesh cells",
+        )?;
+        check(
+            (0.0..=1.0).contains(&p.low_texture_fraction),
+            "low_texture_fraction",
+            "must be in 0..1",
+        )?;
+        check(
+            p.noise_sigma >= 0.0 && p.noise_sigma.is_finite(),
+            "noise_sigma",
+            "must be >= 0",
+        )?;
+        check(p.tool_radius_mm > 0.0, "tool_radius_mm", "must be positive")?;
+        let nx = (p.extent_mm[0] / p.mesh_step_mm).round() as usize + 1;
+        let ny = (p.extent_mm[1] / p.mesh_step_mm).round() as usize + 1;
+        check(
+            nx * ny <= 4_000_000,
+            "mesh_step_mm",
+            "makes a mesh of more than 4 million vertices",
+        )?;
+        let (default_beat, default_breath) = match p.scene {
+            Scene::Heart => (3.0, 1.0),
+            Scene::Liver => (0.0, 4.0),
+            Scene::Kidney | Scene::Stomach => (0.0, 2.0),
+        };
+        let motion = Motion {
+            heartbeat_mm: p.heartbeat_mm.unwrap_or(default_beat),
+            heartbeat_hz: p.heartbeat_hz,
+            breathing_mm: p.breathing_mm.unwrap_or(default_breath),
+            breathing_hz: p.breathing_hz,
+            tool_press_mm: p.tool_press_mm,
+            tool_xy_mm: p.tool_xy_mm,
+            tool_radius_mm: p.tool_radius_mm,
+            tool_start_s: p.tool_start_s,
+            tool_duration_s: p.tool_duration_s,
+            trajectory: p.trajectory,
+            sweep_mm: p.sweep_mm,
+            sweep_period_s: p.sweep_period_s,
+            fast_start_s: p.fast_start_s,
+            fast_duration_s: p.fast_duration_s,
+            fast_amplitude_mm: p.fast_amplitude_mm,
+        };
+        let seed = p.seed.unwrap_or(graph_seed);
+        let tex = texture::TextureParams {
+            seed: (seed ^ (seed >> 32)) as u32,
+            vessel_scale_mm: p.vessel_scale_mm,
+            low_texture_fraction: p.low_texture_fraction,
+        };
+        let mut rest = Vec::with_capacity(nx * ny);
+        let mut rest_normals = Vec::with_capacity(nx * ny);
+        let albedo = Atlas::bake(p.extent_mm, ATLAS_MM, &tex);
+        let mut vertex_colors = Vec::with_capacity(nx * ny);
+        for j in 0..ny {
+            for i in 0..nx {
+                let x = -0.5 * p.extent_mm[0] + i as f32 * p.extent_mm[0] / (nx - 1) as f32;
+                let y = -0.5 * p.extent_mm[1] + j as f32 * p.extent_mm[1] / (ny - 1) as f32;
+                rest.push(scene::rest_point(p.scene, x, y, p.distance_mm));
+                rest_normals.push(scene::rest_normal(p.scene, x, y, p.distance_mm));
+                vertex_colors.push(albedo.sample(x, y).map(to_srgb8));
+            }
+        }
+        let mut triangles = Vec::with_capacity((nx - 1) * (ny - 1) * 2);
+        for j in 0..ny - 1 {
+            for i in 0..nx - 1 {
+                let a = (j * nx + i) as u32;
+                let b = a + 1;
+                let c = a + nx as u32;
+                let d = c + 1;
+                triangles.push([a, b, d]);
+                triangles.push([a, d, c]);
+            }
+        }
+        let calib = StereoCalib {
+            width: p.width,
+            height: p.height,
+            fx: p.focal_px,
+            fy: p.focal_px,
+            cx: (p.width as f64 - 1.0) / 2.0,
+            cy: (p.height as f64 - 1.0) / 2.0,
+            cx_right: (p.width as f64 - 1.0) / 2.0,
+            baseline_mm: p.baseline_mm,
+        };
+        Ok(Phantom {
+            params,
+            motion,
+            seed,
+            calib,
+            rest,
+            rest_normals,
+            triangles,
+            grid: (nx, ny),
+            albedo,
+            vertex_colors,
+            cam: Vec::new(),
+            left: Raster::default(),
+            right: Raster::default(),
+        })
+    }
+
+    /// The calibration of the rendered pair.
+    pub fn calib(&self) -> &StereoCalib {
+        &self.calib
+    }
+
+    /// Rest positions of the mesh vertices (world frame at t = 0).
+    pub fn rest_vertices(&self) -> &[[f32; 3]] {
+        &self.rest
+    }
+
+    /// Mesh triangles (shared by the rest and deformed meshes).
+    pub fn triangles(&self) -> &[[u32; 3]] {
+        &self.triangles
+    }
+
+    /// Grid size (vertices along x, along y); vertex (i, j) has index `j * nx + i`.
+    pub fn grid(&self) -> (usize, usize) {
+        self.grid
+    }
+
+    /// The parameters.
+    pub fn params(&self) -> &Params {
+        &self.params
+    }
+
+    /// Time of frame `index`, s.
+    pub fn time(&self, index: u64) -> f32 {
+        (index as f64 / self.params.fps) as f32
+    }
+
+    /// Deformed vertex positions at time `t`.
+    pub fn deformed_vertices(&self, t: f32) -> Vec<[f32; 3]> {
+        self.rest
+            .iter()
+            .zip(&self.rest_normals)
+            .map(|(r, n)| {
+                let d = scene::displacement(self.params.scene, &self.motion, r[0], r[1], *n, t);
+                [r[0] + d[0], r[1] + d[1], r[2] + d[2]]
+            })
+            .collect()
+    }
+
+    /// The scope's `world_from_camera` at time `t`.
+    pub fn pose(&self, t: f32) -> Isometry3<f32> {
+        scene::scope_pose(&self.motion, t)
+    }
+
+    /// Renders frame `index`; `None` past the end of the sequence.
+    pub fn render(&mut self, index: u64) -> Option<PhantomFrame> {
+        if index >= self.params.frames {
+            return None;
+        }
+        let t = self.time(index);
+        let vertices = self.deformed_vertices(t);
+        let normals = grid_normals(&vertices, self.grid);
+        let world_from_left = self.pose(t);
+        let left_from_world = world_from_left.inverse();
+        let b = self.params.baseline_mm as f32;
+        let right_from_world = Translation3::new(-b, 0.0, 0.0) * left_from_world;
+        let (w, h) = (self.params.width, self.params.height);
+        let view = |cfw: Isometry3<f32>, cx: f64| View {
+            fx: self.calib.fx as f32,
+            fy: self.calib.fy as f32,
+            cx: cx as f32,
+            cy: self.calib.cy as f32,
+            width: w,
+            height: h,
+            camera_from_world: cfw,
+        };
+        let lv = view(left_from_world, self.calib.cx);
+        let rv = view(right_from_world, self.calib.cx_right);
+        render::rasterize(
+            &lv,
+            &vertices,
+            &self.triangles,
+            &mut self.cam,
+            &mut self.left,
+        );
+        render::rasterize(
+            &rv,
+            &vertices,
+            &self.triangles,
+            &mut self.cam,
+            &mut self.right,
+        );
+        // The light sits at the scope tip, between the two cameras.
+        let light = world_from_left * Point3::new(0.5 * b, 0.0, 0.0);
+        let left_centre = world_from_left * Point3::origin();
+        let right_centre = world_from_left * Point3::new(b, 0.0, 0.0);
+        let left_img = self.shade(
+            &self.left,
+            &vertices,
+            &normals,
+            light,
+            left_centre,
+            frame_seed(self.seed, index, 0),
+        );
+        let right_img = self.shade(
+            &self.right,
+            &vertices,
+            &normals,
+            light,
+            right_centre,
+            frame_seed(self.seed, index, 1),
+        );
+
+        let depth = FloatMap {
+            width: w,
+            height: h,
+            data: self.left.depth.clone(),
+        };
+        let disparity = FloatMap {
+            width: w,
+            height: h,
+            data: depth
+                .data
+                .iter()
+                .map(|&z| self.calib.disparity_from_depth(z))
+                .collect(),
+        };
+        let rest_points: Vec<[f32; 3]> = (0..(w * h) as usize)
+            .map(|i| {
+                render::interpolate(&self.left, &self.triangles, &self.rest, i)
+                    .unwrap_or([f32::NAN; 3])
+            })
+            .collect();
+        let pose = Pose {
+            world_from_camera: world_from_left.cast::<f64>(),
+            state: TrackingState::Tracking,
+        };
+        Some(PhantomFrame {
+            stereo: StereoFrame {
+                index,
+                timestamp: t as f64,
+                left: Arc::new(left_img),
+                right: Arc::new(right_img),
+                calib: self.calib,
+                left_mask: None,
+                right_mask: None,
+            },
+            depth: DepthMap {
+                map: depth,
+                calib: self.calib,
+            },
+            disparity: DisparityMap {
+                map: disparity,
+                calib: self.calib,
+            },
+            pose,
+            mesh: Mesh {
+                vertices,
+                normals: Some(normals),
+                colors: Some(self.vertex_colors.clone()),
+                triangles: self.triangles.clone(),
+            },
+            rest_points: VertexMap {
+                width: w,
+                height: h,
+                points: rest_points,
+            },
+        })
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn shade(
+        &self,
+        r: &Raster,
+        vertices: &[[f32; 3]],
+        normals: &[[f32; 3]],
+        light: Point3<f32>,
+        eye: Point3<f32>,
+        seed: u64,
+    ) -> Image {
+        let p = &self.params;
+        let (w, h) = (p.width as usize, p.height as usize);
+        let mut data = vec![0u8; w * h * 3];
+        let mut rng = SplitMix(seed);
+        let reference = p.distance_mm;
+        let (cx, cy) = (self.calib.cx as f32, self.calib.cy as f32);
+        let r_max2 = cx * cx + cy * cy;
+        for i in 0..w * h {
+            let Some(pos) = render::interpolate(r, &self.triangles, vertices, i) else {
+                // Nothing seen: black (outside the tissue patch), noise included.
+                for k in 0..3 {
+                    data[i * 3 + k] = quantize(0.0, p.noise_sigma, &mut rng);
+                }
+                continue;
+            };
+            let n = render::interpolate(r, &self.triangles, normals, i).unwrap_or([0.0, 0.0, -1.0]);
+            let rest = render::interpolate(r, &self.triangles, &self.rest, i).unwrap_or([0.0; 3]);
+            let a = self.albedo.sample(rest[0], rest[1]);
+            let pos = Vector3::new(pos[0], pos[1], pos[2]);
+            let n = Vector3::new(n[0], n[1], n[2]).normalize();
+            let to_light = light.coords - pos;
+            let dist = to_light.norm();
+            let l = to_light / dist;
+            let v = (eye.coords - pos).normalize();
+            let diffuse = n.dot(&l).max(0.0) * (reference / dist).powi(2);
+            let half = (l + v).normalize();
+            let spec = if p.specular > 0.0 && n.dot(&l) > 0.0 {
+                p.specular * n.dot(&half).max(0.0).powf(p.shininess)
+            } else {
+                0.0
+            };
+            // Lens vignetting: a quarter darker in the corners.
+            let (dx, dy) = ((i % w) as f32 - cx, (i / w) as f32 - cy);
+            let vignette = 1.0 - 0.25 * (dx * dx + dy * dy) / r_max2;
+            for k in 0..3 {
+                let radiance = vignette * (a[k] * (p.ambient + (1.0 - p.ambient) * diffuse) + spec);
+                data[i * 3 + k] = quantize(
+                    255.0 * radiance.clamp(0.0, 1.0).powf(1.0 / 2.2),
+                    p.noise_sigma,
+                    &mut rng,
+                );
+            }
+        }
+        Image {
+            width: p.width,
+            height: p.height,
+            channels: 3,
+            data,
+        }
+    }
+
+    /// Albedo (linear RGB) at a rest point (uses its x and y on the parameter plane).
+    pub fn albedo_at(&self, rest: [f32; 3]) -> [f32; 3] {
+        self.albedo.sample(rest[0], rest[1])
+    }
+}
+
+/// Texel size of the baked albedo, mm (about 1 px at the nearest tissue).
+const ATLAS_MM: f32 = 0.1;
+
+/// The albedo baked over the tissue patch's parameter plane, sampled bilinearly.
+struct Atlas {
+    origin: [f32; 2],
+    step: f32,
+    nx: usize,
+    ny: usize,
+    texels: Vec<[f32; 3]>,
+}
+
+impl Atlas {
+    fn bake(extent: [f32; 2], step: f32, tex: &texture::TextureParams) -> Self {
+        let nx = (extent[0] / step).ceil() as usize + 2;
+        let ny = (extent[1] / step).ceil() as usize + 2;
+        let origin = [-0.5 * extent[0] - step, -0.5 * extent[1] - step];
+        let mut texels = Vec::with_capacity(nx * ny);
+        for j in 0..ny {
+            for i in 0..nx {
+                texels.push(texture::albedo(
+                    origin[0] + i as f32 * step,
+                    origin[1] + j as f32 * step,
+                    tex,
+                ));
+            }
+        }
+        Atlas {
+            origin,
+            step,
+            nx,
+            ny,
+            texels,
+        }
+    }
+
+    fn sample(&self, x: f32, y: f32) -> [f32; 3] {
+        let fx = ((x - self.origin[0]) / self.step).clamp(0.0, (self.nx - 2) as f32);
+        let fy = ((y - self.origin[1]) / self.step).clamp(0.0, (self.ny - 2) as f32);
+        let (i, j) = (fx as usize, fy as usize);
+        let (tx, ty) = (fx - i as f32, fy - j as f32);
+        let t = |i: usize, j: usize| self.texels[j * self.nx + i];
+        let (a, b, c, d) = (t(i, j), t(i + 1, j), t(i, j + 1), t(i + 1, j + 1));
+        let mut out = [0.0; 3];
+        for k in 0..3 {
+            let top = a[k] + (b[k] - a[k]) * tx;
+            let bottom = c[k] + (d[k] - c[k]) * tx;
+            out[k] = top + (bottom - top) * ty;
+        }
+        out
+    }
+}
+
+fn to_srgb8(c: f32) -> u8 {
+    (255.0 * c.clamp(0.0, 1.0).powf(1.0 / 2.2)).round() as u8
+}
+
+fn quantize(v: f32, sigma: f32, rng: &mut SplitMix) -> u8 {
+    let noisy = if sigma > 0.0 {
+        v + sigma * rng.gaussian()
+    } else {
+        v
+    };
+    noisy.round().clamp(0.0, 255.0) as u8
+}
+
+/// Per-vertex normals of a grid mesh from central differences (pointing toward the scope).
+fn grid_normals(v: &[[f32; 3]], (nx, ny): (usize, usize)) -> Vec<[f32; 3]> {
+    let at = |i: usize, j: usize| Vector3::from(v[j * nx + i]);
+    let mut out = Vec::with_capacity(v.len());
+    for j in 0..ny {
+        for i in 0..nx {
+            let du = at((i + 1).min(nx - 1), j) - at(i.saturating_sub(1), j);
+            let dv = at(i, (j + 1).min(ny - 1)) - at(i, j.saturating_sub(1));
+            // x right, y down: du x dv points away from the scope (+z); flip it.
+            let n = -du.cross(&dv);
+            let n = n
+                .try_normalize(1e-12)
+                .unwrap_or(Vector3::new(0.0, 0.0, -1.0));
+            out.push([n.x, n.y, n.z]);
+        }
+    }
+    out
+}
+
+fn frame_seed(seed: u64, frame: u64, view: u64) -> u64 {
+    let mut s = SplitMix(
+        seed ^ frame.wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ view.wrapping_mul(0xbf58_476d_1ce4_e5b9),
+    );
+    s.next_u64()
+}
+
+/// SplitMix64: small, fast, deterministic.
+struct SplitMix(u64);
+
+impl SplitMix {
+    fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+
+    fn uniform(&mut self) -> f32 {
+        ((self.next_u64() >> 40) as f32 + 0.5) / (1u64 << 24) as f32
+    }
+
+    /// Standard normal (Box-Muller).
+    fn gaussian(&mut self) -> f32 {
+        let (u1, u2) = (self.uniform(), self.uniform());
+        (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos()
+    }
+}
+
+/// The node.
+pub struct PhantomNode {
+    phantom: Phantom,
+}
+
+impl Node for PhantomNode {
+    fn process(
+        &mut self,
+        _: &mut NodeContext,
+        frame: FrameInfo,
+        _: &Inputs,
+        out: &mut Outputs,
+    ) -> NodeResult<Flow> {
+        let Some(f) = self.phantom.render(frame.index) else {
+            return Ok(Flow::EndOfStream);
+        };
+        let stereo = Arc::new(f.stereo);
+        out.put_arc("left", stereo.left.clone())?;
+        out.put_arc("right", stereo.right.clone())?;
+        out.put_arc("stereo", stereo)?;
+        out.put("depth_gt", f.depth)?;
+        out.put("disparity_gt", f.disparity)?;
+        out.put("pose_gt", f.pose)?;
+        out.put("mesh_gt", f.mesh)?;
+        out.put("rest_points_gt", f.rest_points)?;
+        Ok(Flow::Continue)
+    }
+}
+
+/// The output ports.
+pub fn outputs() -> Vec<PortSpec> {
+    vec![
+        PortSpec::new(
+            "stereo",
+            PortType::Stereo,
+            "rectified pair with calibration",
+        ),
+        PortSpec::new("left", PortType::Image, "left image (shared)"),
+        PortSpec::new("right", PortType::Image, "right image (shared)"),
+        PortSpec::new(
+            "depth_gt",
+            PortType::Depth,
+            "exact depth of the left view, mm",
+        ),
+        PortSpec::new(
+            "disparity_gt",
+            PortType::Disparity,
+            "exact disparity of the left view, px",
+        ),
+        PortSpec::new(
+            "pose_gt",
+            PortType::Pose,
+            "the scope's world_from_camera (left camera)",
+        ),
+        PortSpec::new(
+            "mesh_gt",
+            PortType::Mesh,
+            "the tissue surface of this instant, world frame",
+        ),
+        PortSpec::new(
+            "rest_points_gt",
+            PortType::VertexMap,
+            "per left pixel, the rest-shape point it sees",
+        ),
+    ]
+}
+
+/// Registers `source.phantom`.
+pub fn register(registry: &mut Registry) -> Result<(), String> {
+    registry.register(TypedPlugin::new(
+        "source.phantom",
+        "deforming organ phantom (heart, liver, kidney, stomach) as stereo video with exact ground truth",
+        vec![],
+        outputs(),
+        |p: Params, ctx: &BuildContext| {
+            let phantom = Phantom::new(p, ctx.seed).map_err(|m| BuildError::Failed(m))?;
+            Ok(PhantomNode { phantom })
+        },
+    ))
+}
