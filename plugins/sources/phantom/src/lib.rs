@@ -91,6 +91,8 @@ pub struct Params {
     pub specular: f32,
     /// Blinn-Phong exponent of the highlight.
     pub shininess: f32,
+    /// Lens vignetting: how much darker the image corners are (0..1, 0: none).
+    pub vignetting: f32,
     /// Sensor noise, standard deviation in 8-bit levels (0: noise-free).
     pub noise_sigma: f32,
 }
@@ -129,6 +131,7 @@ impl Default for Params {
             ambient: 0.25,
             specular: 0.35,
             shininess: 60.0,
+            vignetting: 0.25,
             noise_sigma: 2.0,
         }
     }
@@ -514,9 +517,9 @@ impl Phantom {
             } else {
                 0.0
             };
-            // Lens vignetting: a quarter darker in the corners.
+            // Lens vignetting, darkest in the corners.
             let (dx, dy) = ((i % w) as f32 - cx, (i / w) as f32 - cy);
-            let vignette = 1.0 - 0.25 * (dx * dx + dy * dy) / r_max2;
+            let vignette = 1.0 - p.vignetting * (dx * dx + dy * dy) / r_max2;
             for k in 0..3 {
                 let radiance = vignette * (a[k] * (p.ambient + (1.0 - p.ambient) * diffuse) + spec);
                 data[i * 3 + k] = quantize(

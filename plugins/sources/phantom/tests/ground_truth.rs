@@ -1,0 +1,306 @@
+//! The phantom's ground truth checked against independent computations: the GT disparity maps
+//! left pixels onto right pixels of the same colour; the GT mesh ray-cast from the GT pose gives
+//! the GT depth; the GT rest-point correspondences land on the pixels that see them.
+#![allow(clippy::unwrap_used)] // test code: a failed unwrap is the test failing
+
+use misslam_framework::nalgebra::{Point3, Vector3};
+use misslam_source_phantom::scene::{Scene, Trajectory};
+use misslam_source_phantom::{Params, Phantom, PhantomFrame};
+
+fn noise_free(scene: Scene) -> Params {
+    Params {
+        scene,
+        width: 320,
+        height: 240,
+        focal_px: 350.0,
+        trajectory: Trajectory::Sweep,
+        tool_press_mm: 2.0,
+        specular: 0.0,
+        vignetting: 0.0,
+        noise_sigma: 0.0,
+        ..Params::default()
+    }
+}
+
+fn render(p: Params, frame: u64) -> (Phantom, PhantomFrame) {
+    let mut ph = Phantom::new(p, 7).unwrap();
+    let f = ph.render(frame).unwrap();
+    (ph, f)
+}
+
+#[test]
+fn gt_disparity_maps_left_pixels_onto_right_pixels_of_the_same_colour() {
+    for scene in [Scene::Heart, Scene::Stomach] {
+        // Frame 75 = 2.5 s: heartbeat, breathing, tool press and sweep all under way.
+        let (_, f) = render(noise_free(scene), 75);
+        let (w, h) = (f.depth.map.width as usize, f.depth.map.height as usize);
+        let (l, r) = (&f.stereo.left.data, &f.stereo.right.data);
+        let mut errors = Vec::new();
+        for y in 0..h {
+            for x in 0..w {
+                let d = f.disparity.map.data[y * w + x];
+                if !d.is_finite() {
+                    continue;
+                }
+                // Only where the partner lands within 0.05 px of a right pixel centre.
+                let xr = x as f32 - d;
+                let xi = xr.round();
+                if (xr - xi).abs() > 0.05 || xi < 0.0 || xi >= w as f32 {
+                    continue;
+                }
+                for k in 0..3 {
+                    let a = l[(y * w + x) * 3 + k] as f32;
+                    let b = r[(y * w + xi as usize) * 3 + k] as f32;
+                    errors.push((a - b).abs());
+                }
+            }
+        }
+        assert!(
+            errors.len() > 3 * 5_000,
+            "{scene:?}: only {} samples",
+            errors.len()
+        );
+        errors.sort_by(f32::total_cmp);
+        let mean = errors.iter().sum::<f32>() / errors.len() as f32;
+        let p99 = errors[errors.len() * 99 / 100];
+        println!("{scene:?}: photometric error through GT disparity: mean {mean:.3}, p99 {p99} levels, {} samples", errors.len());
+        // Tolerance: the partner may sit 0.05 px off and occluded pixels are included; the
+        // texture changes by at most a few levels per pixel.
+        assert!(
+            mean < 0.6 && p99 <= 4.0,
+            "{scene:?}: mean {mean:.3}, p99 {p99} levels over {} samples",
+            errors.len()
+        );
+    }
+}
+
+/// Nearest intersection of a ray from the origin along `dir` with a triangle (Moller-Trumbore).
+fn ray_triangle(
+    dir: Vector3<f64>,
+    a: Vector3<f64>,
+    b: Vector3<f64>,
+    c: Vector3<f64>,
+) -> Option<f64> {
+    let (e1, e2) = (b - a, c - a);
+    let pv = dir.cross(&e2);
+    let det = e1.dot(&pv);
+    if det.abs() < 1e-12 {
+        return None;
+    }
+    let tv = -a;
+    let u = tv.dot(&pv) / det;
+    let qv = tv.cross(&e1);
+    let v = dir.dot(&qv) / det;
+    let t = e2.dot(&qv) / det;
+    (u >= -1e-9 && v >= -1e-9 && u + v <= 1.0 + 1e-9 && t > 0.0).then_some(t)
+}
+
+#[test]
+fn gt_mesh_ray_cast_from_gt_pose_gives_gt_depth() {
+    let (_, f) = render(
+        Params {
+            mesh_step_mm: 2.0,
+            ..noise_free(Scene::Kidney)
+        },
+        40,
+    );
+    let c = f.depth.calib;
+    let camera_from_world = f.pose.world_from_camera.inverse();
+    let verts: Vec<Vector3<f64>> = f
+        .mesh
+        .vertices
+        .iter()
+        .map(|v| (camera_from_world * Point3::new(v[0] as f64, v[1] as f64, v[2] as f64)).coords)
+        .collect();
+    let (w, h) = (c.width as usize, c.height as usize);
+    let mut checked = 0;
+    for y in (3..h).step_by(23) {
+        for x in (5..w).step_by(29) {
+            let dir = Vector3::new((x as f64 - c.cx) / c.fx, (y as f64 - c.cy) / c.fy, 1.0);
+            let mut best = f64::INFINITY;
+            for t in &f.mesh.triangles {
+                if let Some(s) = ray_triangle(
+                    dir,
+                    verts[t[0] as usize],
+                    verts[t[1] as usize],
+                    verts[t[2] as usize],
+                ) {
+                    best = best.min(s);
+                }
+            }
+            let gt = f.depth.map.data[y * w + x] as f64;
+            if best.is_finite() {
+                // dir has z = 1, so the ray parameter is the depth. f32 rendering: 1e-3 mm.
+                assert!(
+                    (best - gt).abs() < 1e-3,
+                    "pixel ({x},{y}): ray {best}, GT {gt}"
+                );
+                // Disparity agrees with depth.
+                let d = f.disparity.map.data[y * w + x] as f64;
+                assert!((c.fx * c.baseline_mm / (d + c.doffs()) - gt).abs() < 1e-3);
+                checked += 1;
+            } else {
+                assert!(
+                    gt.is_nan(),
+                    "pixel ({x},{y}) sees nothing but has GT depth {gt}"
+                );
+            }
+        }
+    }
+    assert!(checked > 80, "{checked}");
+}
+
+#[test]
+fn gt_correspondences_land_on_the_pixels_that_see_them() {
+    let p = noise_free(Scene::Heart);
+    let (ph, f) = render(p, 60);
+    let (nx, ny) = ph.grid();
+    let rest = ph.rest_vertices();
+    let step = [
+        (rest[1][0] - rest[0][0]) as f64,
+        (rest[nx][1] - rest[0][1]) as f64,
+    ];
+    let origin = [rest[0][0] as f64, rest[0][1] as f64];
+    let c = f.depth.calib;
+    let camera_from_world = f.pose.world_from_camera.inverse();
+    let (w, h) = (c.width as usize, c.height as usize);
+    let mut checked = 0;
+    for y in (0..h).step_by(7) {
+        for x in (0..w).step_by(11) {
+            let r = f.rest_points.points[y * w + x];
+            if !r[0].is_finite() {
+                continue;
+            }
+            // The rest surface is a height field over the grid: find the cell and the triangle
+            // holding (r.x, r.y), and its barycentric weights there.
+            let gx = (r[0] as f64 - origin[0]) / step[0];
+            let gy = (r[1] as f64 - origin[1]) / step[1];
+            let (i, j) = (
+                (gx.floor() as usize).min(nx - 2),
+                (gy.floor() as usize).min(ny - 2),
+            );
+            let (u, v) = (gx - i as f64, gy - j as f64);
+            let (a, b, cc, d) = (
+                j * nx + i,
+                j * nx + i + 1,
+                (j + 1) * nx + i,
+                (j + 1) * nx + i + 1,
+            );
+            // Triangles [a, b, d] (u >= v) and [a, d, c] (v > u), as the phantom builds them.
+            let weights: [(usize, f64); 3] = if u >= v {
+                [(a, 1.0 - u), (b, u - v), (d, v)]
+            } else {
+                [(a, 1.0 - v), (d, u), (cc, v - u)]
+            };
+            let mut q = Vector3::zeros();
+            for (vi, wgt) in weights {
+                let m = f.mesh.vertices[vi];
+                q += wgt * Vector3::new(m[0] as f64, m[1] as f64, m[2] as f64);
+            }
+            let pc = camera_from_world * Point3::from(q);
+            let (px, py) = (c.fx * pc.x / pc.z + c.cx, c.fy * pc.y / pc.z + c.cy);
+            assert!(
+                (px - x as f64).abs() < 0.02 && (py - y as f64).abs() < 0.02,
+                "pixel ({x},{y}) -> ({px:.4},{py:.4})"
+            );
+            let gt = f.depth.map.data[y * w + x] as f64;
+            assert!(
+                (pc.z - gt).abs() < 2e-3,
+                "pixel ({x},{y}): z {} vs GT {gt}",
+                pc.z
+            );
+            checked += 1;
+        }
+    }
+    assert!(checked > 500, "{checked}");
+}
+
+#[test]
+fn deterministic_from_the_seed() {
+    let p = Params {
+        width: 64,
+        height: 48,
+        focal_px: 70.0,
+        ..Params::default()
+    };
+    let (_, a) = render(p.clone(), 3);
+    let (_, b) = render(p.clone(), 3);
+    assert_eq!(a.stereo.left.data, b.stereo.left.data);
+    assert_eq!(a.stereo.right.data, b.stereo.right.data);
+    let (_, c) = render(
+        Params {
+            seed: Some(99),
+            ..p
+        },
+        3,
+    );
+    assert_ne!(a.stereo.left.data, c.stereo.left.data);
+}
+
+#[test]
+fn sequence_ends_and_bad_parameters_name_the_field() {
+    let mut ph = Phantom::new(
+        Params {
+            frames: 2,
+            width: 32,
+            height: 24,
+            focal_px: 35.0,
+            ..Params::default()
+        },
+        0,
+    )
+    .unwrap();
+    assert!(ph.render(1).is_some());
+    assert!(ph.render(2).is_none());
+    let e = Phantom::new(
+        Params {
+            baseline_mm: -5.0,
+            ..Params::default()
+        },
+        0,
+    )
+    .err()
+    .unwrap();
+    assert_eq!(e, "`baseline_mm` must be positive");
+    let e = Phantom::new(
+        Params {
+            distance_mm: 20.0,
+            ..Params::default()
+        },
+        0,
+    )
+    .err()
+    .unwrap();
+    assert!(e.starts_with("`distance_mm` must exceed 30 mm"), "{e}");
+}
+
+#[test]
+fn depth_spans_the_hamlyn_like_range() {
+    let (_, f) = render(
+        Params {
+            width: 160,
+            height: 120,
+            focal_px: 175.0,
+            ..Params::default()
+        },
+        0,
+    );
+    let valid: Vec<f32> = f
+        .depth
+        .map
+        .data
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite())
+        .collect();
+    assert_eq!(
+        valid.len(),
+        f.depth.map.data.len(),
+        "the tissue fills the view"
+    );
+    let (lo, hi) = valid
+        .iter()
+        .fold((f32::MAX, f32::MIN), |(a, b), &v| (a.min(v), b.max(v)));
+    assert!(lo > 40.0 && hi < 120.0, "depth {lo}..{hi} mm");
+    assert!(hi - lo > 15.0, "the heart bulges: {lo}..{hi} mm");
+}
