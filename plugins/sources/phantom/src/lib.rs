@@ -167,8 +167,9 @@ pub struct Phantom {
     grid: (usize, usize),
     albedo: Atlas,
     vertex_colors: Vec<[u8; 3]>,
-    // Scratch reused across frames.
-    cam: Vec<[f32; 3]>,
+    gamma: Vec<f32>,
+    // Scratch reused across frames, one per view.
+    cam: [Vec<[f32; 3]>; 2],
     left: Raster,
     right: Raster,
 }
@@ -307,7 +308,10 @@ impl Phantom {
             grid: (nx, ny),
             albedo,
             vertex_colors,
-            cam: Vec::new(),
+            gamma: (0..GAMMA_LUT)
+                .map(|i| 255.0 * (i as f32 / (GAMMA_LUT - 1) as f32).powf(1.0 / 2.2))
+                .collect(),
+            cam: [Vec::new(), Vec::new()],
             left: Raster::default(),
             right: Raster::default(),
         })
@@ -384,39 +388,42 @@ impl Phantom {
         };
         let lv = view(left_from_world, self.calib.cx);
         let rv = view(right_from_world, self.calib.cx_right);
-        render::rasterize(
-            &lv,
-            &vertices,
-            &self.triangles,
-            &mut self.cam,
-            &mut self.left,
-        );
-        render::rasterize(
-            &rv,
-            &vertices,
-            &self.triangles,
-            &mut self.cam,
-            &mut self.right,
+        // The two views are independent: render them in parallel.
+        let [cam_l, cam_r] = &mut self.cam;
+        let (tris, left, right) = (&self.triangles, &mut self.left, &mut self.right);
+        rayon::join(
+            || render::rasterize(&lv, &vertices, tris, cam_l, left),
+            || render::rasterize(&rv, &vertices, tris, cam_r, right),
         );
         // The light sits at the scope tip, between the two cameras.
         let light = world_from_left * Point3::new(0.5 * b, 0.0, 0.0);
         let left_centre = world_from_left * Point3::origin();
         let right_centre = world_from_left * Point3::new(b, 0.0, 0.0);
-        let left_img = self.shade(
-            &self.left,
-            &vertices,
-            &normals,
-            light,
-            left_centre,
+        let seeds = [
             frame_seed(self.seed, index, 0),
-        );
-        let right_img = self.shade(
-            &self.right,
-            &vertices,
-            &normals,
-            light,
-            right_centre,
             frame_seed(self.seed, index, 1),
+        ];
+        let (left_img, right_img) = rayon::join(
+            || {
+                self.shade(
+                    &self.left,
+                    &vertices,
+                    &normals,
+                    light,
+                    left_centre,
+                    seeds[0],
+                )
+            },
+            || {
+                self.shade(
+                    &self.right,
+                    &vertices,
+                    &normals,
+                    light,
+                    right_centre,
+                    seeds[1],
+                )
+            },
         );
 
         let depth = FloatMap {
@@ -489,44 +496,57 @@ impl Phantom {
         let p = &self.params;
         let (w, h) = (p.width as usize, p.height as usize);
         let mut data = vec![0u8; w * h * 3];
-        let mut rng = SplitMix(seed);
         let reference = p.distance_mm;
         let (cx, cy) = (self.calib.cx as f32, self.calib.cy as f32);
         let r_max2 = cx * cx + cy * cy;
-        for i in 0..w * h {
-            let Some(pos) = render::interpolate(r, &self.triangles, vertices, i) else {
-                // Nothing seen: black (outside the tissue patch), noise included.
+        // The highlight is below half a level where n.h^shininess < 1/512.
+        let spec_floor = (1.0f32 / 512.0).powf(1.0 / p.shininess.max(1.0));
+        for (y, row) in data.chunks_exact_mut(w * 3).enumerate() {
+            // One noise stream per row: the same image whatever the threads.
+            let mut rng = SplitMix(seed ^ (y as u64).wrapping_mul(0xd6e8_feb8_6659_fd93));
+            let mut noise = Noise::default();
+            for x in 0..w {
+                let i = y * w + x;
+                let px = &mut row[x * 3..x * 3 + 3];
+                let Some(pos) = render::interpolate(r, &self.triangles, vertices, i) else {
+                    // Nothing seen: black (outside the tissue patch), noise included.
+                    for v in px.iter_mut() {
+                        *v = quantize(0.0, p.noise_sigma, &mut noise, &mut rng);
+                    }
+                    continue;
+                };
+                let n =
+                    render::interpolate(r, &self.triangles, normals, i).unwrap_or([0.0, 0.0, -1.0]);
+                let rest =
+                    render::interpolate(r, &self.triangles, &self.rest, i).unwrap_or([0.0; 3]);
+                let a = self.albedo.sample(rest[0], rest[1]);
+                let pos = Vector3::new(pos[0], pos[1], pos[2]);
+                let n = Vector3::new(n[0], n[1], n[2]).normalize();
+                let to_light = light.coords - pos;
+                let dist = to_light.norm();
+                let l = to_light / dist;
+                let n_dot_l = n.dot(&l);
+                let diffuse = n_dot_l.max(0.0) * (reference / dist).powi(2);
+                let spec = if p.specular > 0.0 && n_dot_l > 0.0 {
+                    let v = (eye.coords - pos).normalize();
+                    let n_dot_h = n.dot(&(l + v).normalize());
+                    if n_dot_h > spec_floor {
+                        p.specular * n_dot_h.powf(p.shininess)
+                    } else {
+                        0.0
+                    }
+                } else {
+                    0.0
+                };
+                // Lens vignetting, darkest in the corners.
+                let (dx, dy) = (x as f32 - cx, y as f32 - cy);
+                let vignette = 1.0 - p.vignetting * (dx * dx + dy * dy) / r_max2;
                 for k in 0..3 {
-                    data[i * 3 + k] = quantize(0.0, p.noise_sigma, &mut rng);
+                    let radiance =
+                        vignette * (a[k] * (p.ambient + (1.0 - p.ambient) * diffuse) + spec);
+                    let lut = (radiance.clamp(0.0, 1.0) * (GAMMA_LUT - 1) as f32 + 0.5) as usize;
+                    px[k] = quantize(self.gamma[lut], p.noise_sigma, &mut noise, &mut rng);
                 }
-                continue;
-            };
-            let n = render::interpolate(r, &self.triangles, normals, i).unwrap_or([0.0, 0.0, -1.0]);
-            let rest = render::interpolate(r, &self.triangles, &self.rest, i).unwrap_or([0.0; 3]);
-            let a = self.albedo.sample(rest[0], rest[1]);
-            let pos = Vector3::new(pos[0], pos[1], pos[2]);
-            let n = Vector3::new(n[0], n[1], n[2]).normalize();
-            let to_light = light.coords - pos;
-            let dist = to_light.norm();
-            let l = to_light / dist;
-            let v = (eye.coords - pos).normalize();
-            let diffuse = n.dot(&l).max(0.0) * (reference / dist).powi(2);
-            let half = (l + v).normalize();
-            let spec = if p.specular > 0.0 && n.dot(&l) > 0.0 {
-                p.specular * n.dot(&half).max(0.0).powf(p.shininess)
-            } else {
-                0.0
-            };
-            // Lens vignetting, darkest in the corners.
-            let (dx, dy) = ((i % w) as f32 - cx, (i / w) as f32 - cy);
-            let vignette = 1.0 - p.vignetting * (dx * dx + dy * dy) / r_max2;
-            for k in 0..3 {
-                let radiance = vignette * (a[k] * (p.ambient + (1.0 - p.ambient) * diffuse) + spec);
-                data[i * 3 + k] = quantize(
-                    255.0 * radiance.clamp(0.0, 1.0).powf(1.0 / 2.2),
-                    p.noise_sigma,
-                    &mut rng,
-                );
             }
         }
         Image {
@@ -600,13 +620,35 @@ fn to_srgb8(c: f32) -> u8 {
     (255.0 * c.clamp(0.0, 1.0).powf(1.0 / 2.2)).round() as u8
 }
 
-fn quantize(v: f32, sigma: f32, rng: &mut SplitMix) -> u8 {
+/// Entries of the linear-to-sRGB table (fine enough that no 8-bit level is skipped above 1 %).
+const GAMMA_LUT: usize = 16384;
+
+fn quantize(v: f32, sigma: f32, noise: &mut Noise, rng: &mut SplitMix) -> u8 {
     let noisy = if sigma > 0.0 {
-        v + sigma * rng.gaussian()
+        v + sigma * noise.next(rng)
     } else {
         v
     };
     noisy.round().clamp(0.0, 255.0) as u8
+}
+
+/// Standard normal samples, both of each Box-Muller pair used.
+#[derive(Default)]
+struct Noise {
+    spare: Option<f32>,
+}
+
+impl Noise {
+    fn next(&mut self, rng: &mut SplitMix) -> f32 {
+        if let Some(v) = self.spare.take() {
+            return v;
+        }
+        let (u1, u2) = (rng.uniform(), rng.uniform());
+        let radius = (-2.0 * u1.ln()).sqrt();
+        let (s, c) = (std::f32::consts::TAU * u2).sin_cos();
+        self.spare = Some(radius * s);
+        radius * c
+    }
 }
 
 /// Per-vertex normals of a grid mesh from central differences (pointing toward the scope).
@@ -649,12 +691,6 @@ impl SplitMix {
 
     fn uniform(&mut self) -> f32 {
         ((self.next_u64() >> 40) as f32 + 0.5) / (1u64 << 24) as f32
-    }
-
-    /// Standard normal (Box-Muller).
-    fn gaussian(&mut self) -> f32 {
-        let (u1, u2) = (self.uniform(), self.uniform());
-        (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos()
     }
 }
 
