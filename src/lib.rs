@@ -3,6 +3,7 @@
 #![deny(missing_docs)]
 
 pub mod bench;
+pub mod phantom_export;
 
 pub use misslam_framework as framework;
 
@@ -17,6 +18,7 @@ pub const BUILTIN: &[RegisterFn] = &[
     misslam_source_phantom::register,
     misslam_sink_files::register,
     misslam_image_gray::register,
+    misslam_eval_depth::register,
 ];
 
 /// Every built-in plugin; an id clash is an error naming both.

@@ -60,10 +60,38 @@ enum Command {
         #[arg(long = "library", value_name = "PATH")]
         libraries: Vec<PathBuf>,
     },
+    /// The built-in phantom.
+    Phantom {
+        #[command(subcommand)]
+        which: PhantomCommand,
+    },
     /// Benchmarks.
     Bench {
         #[command(subcommand)]
         which: BenchCommand,
+    },
+}
+
+#[derive(Subcommand)]
+enum PhantomCommand {
+    /// Write a phantom sequence as a dataset folder (images, calib.toml, GT depth, disparity,
+    /// correspondences, meshes, poses; layout in the folder's README.md).
+    Export {
+        /// heart, liver, kidney or stomach.
+        #[arg(long, default_value = "heart")]
+        scene: String,
+        /// Frames to write.
+        #[arg(long, default_value_t = 30)]
+        frames: u64,
+        /// Output folder.
+        #[arg(long)]
+        out: PathBuf,
+        /// Seed (texture and noise).
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Any other `source.phantom` parameter: `--set trajectory=fast`. Repeatable.
+        #[arg(long = "set", value_name = "PARAM=VALUE")]
+        set: Vec<String>,
     },
 }
 
@@ -144,6 +172,41 @@ fn run(command: Command) -> anyhow::Result<()> {
                 std::fs::write(&path, serde_json::to_string_pretty(&rows)?)
                     .with_context(|| format!("writing {}", path.display()))?;
             }
+            Ok(())
+        }
+        Command::Phantom {
+            which:
+                PhantomCommand::Export {
+                    scene,
+                    frames,
+                    out,
+                    seed,
+                    set,
+                },
+        } => {
+            let mut table = misslam_framework::toml::Table::new();
+            table.insert("scene".into(), scene.into());
+            table.insert("frames".into(), (frames as i64).into());
+            for s in &set {
+                let (k, v) = s
+                    .split_once('=')
+                    .with_context(|| format!("--set {s}: expected PARAM=VALUE"))?;
+                let value = misslam_framework::toml::from_str::<misslam_framework::toml::Table>(
+                    &format!("v = {v}"),
+                )
+                .ok()
+                .and_then(|mut t| t.remove("v"))
+                .unwrap_or_else(|| v.into());
+                table.insert(k.trim().to_owned(), value);
+            }
+            let t = std::time::Instant::now();
+            let n =
+                misslam::phantom_export::export(&table, seed, &out).map_err(anyhow::Error::msg)?;
+            eprintln!(
+                "wrote {n} frames to {} ({:.1} frames/s including PNG, PFM and PLY writing)",
+                out.display(),
+                n as f64 / t.elapsed().as_secs_f64()
+            );
             Ok(())
         }
         Command::Plugins { id: None, .. } => {

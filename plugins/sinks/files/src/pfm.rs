@@ -19,6 +19,26 @@ pub fn write_pfm(path: &Path, map: &FloatMap) -> io::Result<()> {
     out.flush()
 }
 
+/// Writes a three-channel little-endian PFM (`PF`), e.g. a point per pixel.
+pub fn write_pfm3(path: &Path, width: u32, height: u32, data: &[[f32; 3]]) -> io::Result<()> {
+    if data.len() != width as usize * height as usize {
+        return Err(io::Error::new(
+            io::ErrorKind::InvalidInput,
+            "data does not match width x height",
+        ));
+    }
+    let mut out = io::BufWriter::new(std::fs::File::create(path)?);
+    write!(out, "PF\n{width} {height}\n-1.0\n")?;
+    for row in data.chunks_exact((width as usize).max(1)).rev() {
+        for p in row {
+            for v in p {
+                out.write_all(&v.to_le_bytes())?;
+            }
+        }
+    }
+    out.flush()
+}
+
 /// Reads a one-channel PFM of either byte order.
 pub fn read_pfm(path: &Path) -> io::Result<FloatMap> {
     let bad = |m: String| {

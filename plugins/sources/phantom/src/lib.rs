@@ -769,7 +769,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
         vec![],
         outputs(),
         |p: Params, ctx: &BuildContext| {
-            let phantom = Phantom::new(p, ctx.seed).map_err(|m| BuildError::Failed(m))?;
+            let phantom = Phantom::new(p, ctx.seed).map_err(BuildError::Failed)?;
             Ok(PhantomNode { phantom })
         },
     ))

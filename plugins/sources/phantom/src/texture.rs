@@ -61,7 +61,7 @@ pub fn gradient_noise(x: f32, y: f32, seed: u32) -> f32 {
     let n11 = grad(ix + 1, iy + 1, tx - 1.0, ty - 1.0);
     let top = n00 + (n10 - n00) * u;
     let bottom = n01 + (n11 - n01) * u;
-    1.4142 * (top + (bottom - top) * v)
+    std::f32::consts::SQRT_2 * (top + (bottom - top) * v)
 }
 
 /// Fractal sum of `octaves` noise layers, in [0, 1].

@@ -1,0 +1,94 @@
+//! The phantom through the runtime: the graph runs end to end, and an export opens as a dataset
+//! folder in `source.stereo_folder` with GT that matches what the phantom rendered.
+#![allow(clippy::unwrap_used)] // test code: a failed unwrap is the test failing
+
+mod common;
+
+use std::path::Path;
+
+use misslam::framework::toml;
+use misslam::framework::{graph, RunOptions, Runtime};
+use misslam_source_stereo_folder::{Params as FolderParams, StereoFolder};
+
+const SMALL: [&str; 3] = ["src.width=160", "src.height=120", "src.focal_px=175.0"];
+
+#[test]
+fn phantom_graph_runs_end_to_end() {
+    let out = common::tmp_dir("phantom-graph");
+    let mut sets: Vec<String> = SMALL.iter().map(|s| s.to_string()).collect();
+    sets.push("graph.frames.count=3".into());
+    let g = graph::load(
+        Path::new("graphs/phantom.toml"),
+        &misslam::builtin_registry(),
+        &sets,
+    )
+    .unwrap();
+    let report = Runtime::build(g)
+        .unwrap()
+        .run(RunOptions {
+            out_dir: Some(out.clone()),
+            ..Default::default()
+        })
+        .unwrap();
+    assert!(
+        report.error.is_none(),
+        "{:?}",
+        report.error.map(|e| e.to_string())
+    );
+    assert_eq!(report.metrics.frames.processed, 3);
+    assert!(out.join("files/left/000000.png").is_file());
+    assert!(out.join("files/depth/000000.pfm").is_file());
+    assert!(out.join("files/mesh/final.glb").is_file());
+    let depth = misslam_sink_files::pfm::read_pfm(&out.join("files/depth/000000.pfm")).unwrap();
+    assert_eq!((depth.width, depth.height), (160, 120));
+    assert!(depth
+        .data
+        .iter()
+        .all(|d| d.is_finite() && *d > 40.0 && *d < 120.0));
+}
+
+#[test]
+fn export_opens_as_a_stereo_folder_with_matching_ground_truth() {
+    let out = common::tmp_dir("phantom-export");
+    let params: toml::Table =
+        toml::from_str("scene = \"kidney\"\nframes = 3\nwidth = 160\nheight = 120\nfocal_px = 175.0\nnoise_sigma = 0.0").unwrap();
+    let n = misslam::phantom_export::export(&params, 5, &out).unwrap();
+    assert_eq!(n, 3);
+    assert!(std::fs::read_to_string(out.join("README.md"))
+        .unwrap()
+        .contains("rest_points_gt"));
+    assert_eq!(
+        std::fs::read_to_string(out.join("poses_gt.txt"))
+            .unwrap()
+            .lines()
+            .count(),
+        3
+    );
+
+    let folder = StereoFolder::open(
+        FolderParams {
+            path: out.clone(),
+            ..FolderParams::default()
+        },
+        out.clone(),
+    )
+    .unwrap();
+    assert_eq!(folder.len(), 3);
+    let c = folder.calib();
+    assert_eq!(
+        (c.width, c.height, c.fx, c.baseline_mm),
+        (160, 120, 175.0, 5.0)
+    );
+    let pair = folder.read(2).unwrap().unwrap();
+
+    // The same frame rendered directly: identical pixels and depth.
+    let p: misslam_source_phantom::Params =
+        misslam::framework::registry::parse_params(&params).unwrap();
+    let mut ph = misslam_source_phantom::Phantom::new(p, 5).unwrap();
+    let f = ph.render(2).unwrap();
+    assert_eq!(pair.left.data, f.stereo.left.data);
+    assert_eq!(pair.right.data, f.stereo.right.data);
+    let depth = misslam_sink_files::pfm::read_pfm(&out.join("depth_gt/2.pfm")).unwrap();
+    assert_eq!(depth.data, f.depth.map.data);
+    assert!(out.join("mesh_gt/2.ply").is_file() && out.join("rest_points_gt/2.pfm").is_file());
+}
