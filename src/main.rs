@@ -97,6 +97,15 @@ enum PhantomCommand {
 
 #[derive(Subcommand)]
 enum BenchCommand {
+    /// Render speed of the phantom (both views and all GT) per scene at 640x480 and 360x288.
+    Phantom {
+        /// Frames per configuration.
+        #[arg(long, default_value_t = 20)]
+        frames: u64,
+        /// Also write the rows as JSON here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// The scheduler's own cost per node per frame (budget: 50 us), on trivial nodes.
     RuntimeOverhead {
         /// Pass-through nodes per graph.
@@ -145,6 +154,30 @@ fn run(command: Command) -> anyhow::Result<()> {
         }
     }
     match command {
+        Command::Bench {
+            which: BenchCommand::Phantom { frames, out },
+        } => {
+            let rows = misslam::bench::phantom(frames).map_err(anyhow::Error::msg)?;
+            println!(
+                "{:<8} {:>9} {:>7} {:>10} {:>8}",
+                "scene", "size", "frames", "ms/frame", "fps"
+            );
+            for r in &rows {
+                println!(
+                    "{:<8} {:>9} {:>7} {:>10.1} {:>8.1}",
+                    r.scene,
+                    format!("{}x{}", r.width, r.height),
+                    r.frames,
+                    r.ms_per_frame,
+                    r.fps
+                );
+            }
+            if let Some(path) = out {
+                std::fs::write(&path, serde_json::to_string_pretty(&rows)?)
+                    .with_context(|| format!("writing {}", path.display()))?;
+            }
+            Ok(())
+        }
         Command::Bench {
             which: BenchCommand::RuntimeOverhead { nodes, frames, out },
         } => {

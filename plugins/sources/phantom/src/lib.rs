@@ -168,6 +168,7 @@ pub struct Phantom {
     albedo: Atlas,
     vertex_colors: Vec<[u8; 3]>,
     gamma: Vec<f32>,
+    gauss: Vec<f32>,
     // Scratch reused across frames, one per view.
     cam: [Vec<[f32; 3]>; 2],
     left: Raster,
@@ -311,6 +312,7 @@ impl Phantom {
             gamma: (0..GAMMA_LUT)
                 .map(|i| 255.0 * (i as f32 / (GAMMA_LUT - 1) as f32).powf(1.0 / 2.2))
                 .collect(),
+            gauss: gauss_table(),
             cam: [Vec::new(), Vec::new()],
             left: Raster::default(),
             right: Raster::default(),
@@ -504,21 +506,27 @@ impl Phantom {
         for (y, row) in data.chunks_exact_mut(w * 3).enumerate() {
             // One noise stream per row: the same image whatever the threads.
             let mut rng = SplitMix(seed ^ (y as u64).wrapping_mul(0xd6e8_feb8_6659_fd93));
-            let mut noise = Noise::default();
+            let mut noise = Noise::new(&self.gauss);
             for x in 0..w {
                 let i = y * w + x;
                 let px = &mut row[x * 3..x * 3 + 3];
-                let Some(pos) = render::interpolate(r, &self.triangles, vertices, i) else {
+                let Some(t) = self.triangles.get(r.triangle[i] as usize) else {
                     // Nothing seen: black (outside the tissue patch), noise included.
                     for v in px.iter_mut() {
                         *v = quantize(0.0, p.noise_sigma, &mut noise, &mut rng);
                     }
                     continue;
                 };
-                let n =
-                    render::interpolate(r, &self.triangles, normals, i).unwrap_or([0.0, 0.0, -1.0]);
-                let rest =
-                    render::interpolate(r, &self.triangles, &self.rest, i).unwrap_or([0.0; 3]);
+                let bw = r.bary[i];
+                let lerp = |attr: &[[f32; 3]]| {
+                    let (a0, a1, a2) = (
+                        attr[t[0] as usize],
+                        attr[t[1] as usize],
+                        attr[t[2] as usize],
+                    );
+                    [0, 1, 2].map(|k| bw[0] * a0[k] + bw[1] * a1[k] + bw[2] * a2[k])
+                };
+                let (pos, n, rest) = (lerp(vertices), lerp(normals), lerp(&self.rest));
                 let a = self.albedo.sample(rest[0], rest[1]);
                 let pos = Vector3::new(pos[0], pos[1], pos[2]);
                 let n = Vector3::new(n[0], n[1], n[2]).normalize();
@@ -632,22 +640,49 @@ fn quantize(v: f32, sigma: f32, noise: &mut Noise, rng: &mut SplitMix) -> u8 {
     noisy.round().clamp(0.0, 255.0) as u8
 }
 
-/// Standard normal samples, both of each Box-Muller pair used.
-#[derive(Default)]
-struct Noise {
-    spare: Option<f32>,
-}
+/// Entries of the table of standard normal samples the sensor noise draws from.
+const GAUSS_TABLE: usize = 1 << 16;
 
-impl Noise {
-    fn next(&mut self, rng: &mut SplitMix) -> f32 {
-        if let Some(v) = self.spare.take() {
-            return v;
-        }
+/// A table of standard normal samples (Box-Muller from a fixed seed): drawing noise is then one
+/// table read per value, four values per random number.
+fn gauss_table() -> Vec<f32> {
+    let mut rng = SplitMix(0x6e6f_6973_6521);
+    let mut t = Vec::with_capacity(GAUSS_TABLE);
+    while t.len() < GAUSS_TABLE {
         let (u1, u2) = (rng.uniform(), rng.uniform());
         let radius = (-2.0 * u1.ln()).sqrt();
         let (s, c) = (std::f32::consts::TAU * u2).sin_cos();
-        self.spare = Some(radius * s);
-        radius * c
+        t.push(radius * c);
+        t.push(radius * s);
+    }
+    t
+}
+
+/// Standard normal values drawn from [`gauss_table`].
+struct Noise<'a> {
+    table: &'a [f32],
+    bits: u64,
+    left: u32,
+}
+
+impl<'a> Noise<'a> {
+    fn new(table: &'a [f32]) -> Self {
+        Noise {
+            table,
+            bits: 0,
+            left: 0,
+        }
+    }
+
+    fn next(&mut self, rng: &mut SplitMix) -> f32 {
+        if self.left == 0 {
+            self.bits = rng.next_u64();
+            self.left = 4;
+        }
+        let i = (self.bits & 0xffff) as usize;
+        self.bits >>= 16;
+        self.left -= 1;
+        self.table[i]
     }
 }
 
