@@ -19,6 +19,7 @@ pub const BUILTIN: &[RegisterFn] = &[
     misslam_sink_files::register,
     misslam_image_gray::register,
     misslam_eval_depth::register,
+    misslam_eval_recon::register,
 ];
 
 /// Every built-in plugin; an id clash is an error naming both.

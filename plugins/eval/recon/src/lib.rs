@@ -1,0 +1,469 @@
+//! `eval.recon`: how far a reconstruction lies from the ground-truth surface of the same instant.
+//! Keys (per frame on `metrics`, means over frames under `eval` in `metrics.json`):
+//!
+//! | key | meaning |
+//! |---|---|
+//! | `recon.mean_mm` | mean distance from the reconstruction's points to the GT surface, mm |
+//! | `recon.rms_mm` | root mean square of those distances, mm |
+//! | `recon.p95_mm` | 95th percentile (nearest rank), mm |
+//!
+//! Distances are exact point-to-triangle distances (a uniform grid over the GT triangles finds
+//! the nearest one). Both inputs must be in the same frame (world). The points, coloured by
+//! their error (blue 0 to red `color_max_mm`), go out on `colored` for the Rerun viewer.
+#![deny(missing_docs)]
+
+use std::collections::BTreeMap;
+
+use misslam_framework::{
+    BuildContext, BuildError, Flow, FrameInfo, Inputs, Mesh, Metrics, Node, NodeContext, NodeError,
+    NodeResult, Outputs, PointCloud, PortSpec, PortType, Registry, SurfelModel, TypedPlugin,
+};
+
+/// Parameters of `eval.recon`.
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// Error shown in full red on the `colored` output, mm.
+    pub color_max_mm: f32,
+    /// Prefix of the keys (`recon` gives `recon.mean_mm`).
+    pub prefix: String,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params {
+            color_max_mm: 2.0,
+            prefix: "recon".into(),
+        }
+    }
+}
+
+type V3 = [f32; 3];
+
+fn sub(a: V3, b: V3) -> V3 {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+fn dot(a: V3, b: V3) -> f32 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+/// Squared distance from `p` to triangle `abc` (Ericson, Real-Time Collision Detection 5.1.5).
+pub fn point_triangle_dist2(p: V3, a: V3, b: V3, c: V3) -> f32 {
+    let (ab, ac, ap) = (sub(b, a), sub(c, a), sub(p, a));
+    let (d1, d2) = (dot(ab, ap), dot(ac, ap));
+    let closest = if d1 <= 0.0 && d2 <= 0.0 {
+        a
+    } else {
+        let bp = sub(p, b);
+        let (d3, d4) = (dot(ab, bp), dot(ac, bp));
+        if d3 >= 0.0 && d4 <= d3 {
+            b
+        } else {
+            let vc = d1 * d4 - d3 * d2;
+            if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
+                let v = d1 / (d1 - d3);
+                [a[0] + v * ab[0], a[1] + v * ab[1], a[2] + v * ab[2]]
+            } else {
+                let cp = sub(p, c);
+                let (d5, d6) = (dot(ab, cp), dot(ac, cp));
+                if d6 >= 0.0 && d5 <= d6 {
+                    c
+                } else {
+                    let vb = d5 * d2 - d1 * d6;
+                    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
+                        let w = d2 / (d2 - d6);
+                        [a[0] + w * ac[0], a[1] + w * ac[1], a[2] + w * ac[2]]
+                    } else {
+                        let va = d3 * d6 - d5 * d4;
+                        if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
+                            let w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
+                            let bc = sub(c, b);
+                            [b[0] + w * bc[0], b[1] + w * bc[1], b[2] + w * bc[2]]
+                        } else {
+                            let denom = 1.0 / (va + vb + vc);
+                            let (v, w) = (vb * denom, vc * denom);
+                            [
+                                a[0] + ab[0] * v + ac[0] * w,
+                                a[1] + ab[1] * v + ac[1] * w,
+                                a[2] + ab[2] * v + ac[2] * w,
+                            ]
+                        }
+                    }
+                }
+            }
+        }
+    };
+    let d = sub(p, closest);
+    dot(d, d)
+}
+
+/// Triangles bucketed in a uniform grid for nearest-triangle queries.
+pub struct SurfaceIndex<'a> {
+    mesh: &'a Mesh,
+    origin: V3,
+    cell: f32,
+    dims: [usize; 3],
+    cells: Vec<Vec<u32>>,
+}
+
+impl<'a> SurfaceIndex<'a> {
+    /// Indexes `mesh` (cell size: twice the mean edge length).
+    pub fn new(mesh: &'a Mesh) -> Result<Self, String> {
+        if mesh.triangles.is_empty() {
+            return Err("the ground-truth mesh has no triangles".into());
+        }
+        let mut lo = [f32::INFINITY; 3];
+        let mut hi = [f32::NEG_INFINITY; 3];
+        let mut edge_sum = 0.0;
+        for t in &mesh.triangles {
+            if t.iter().any(|&i| i as usize >= mesh.vertices.len()) {
+                return Err("a ground-truth triangle indexes past the vertices".into());
+            }
+            let v = t.map(|i| mesh.vertices[i as usize]);
+            for p in v {
+                for k in 0..3 {
+                    lo[k] = lo[k].min(p[k]);
+                    hi[k] = hi[k].max(p[k]);
+                }
+            }
+            edge_sum += dot(sub(v[1], v[0]), sub(v[1], v[0])).sqrt();
+        }
+        if lo.iter().chain(&hi).any(|v| !v.is_finite()) {
+            return Err("the ground-truth mesh has non-finite vertices".into());
+        }
+        let cell = (2.0 * edge_sum / mesh.triangles.len() as f32).max(1e-3);
+        let dims = [0, 1, 2].map(|k| (((hi[k] - lo[k]) / cell) as usize + 1).min(512));
+        let cell = (0..3)
+            .map(|k| (hi[k] - lo[k]) / dims[k] as f32)
+            .fold(cell, f32::max)
+            .max(1e-3);
+        let mut cells = vec![Vec::new(); dims[0] * dims[1] * dims[2]];
+        let index = |p: f32, k: usize| (((p - lo[k]) / cell) as usize).min(dims[k] - 1);
+        for (ti, t) in mesh.triangles.iter().enumerate() {
+            let v = t.map(|i| mesh.vertices[i as usize]);
+            let r = [0, 1, 2].map(|k| {
+                let a = v.iter().map(|p| p[k]).fold(f32::INFINITY, f32::min);
+                let b = v.iter().map(|p| p[k]).fold(f32::NEG_INFINITY, f32::max);
+                (index(a, k), index(b, k))
+            });
+            for z in r[2].0..=r[2].1 {
+                for y in r[1].0..=r[1].1 {
+                    for x in r[0].0..=r[0].1 {
+                        cells[(z * dims[1] + y) * dims[0] + x].push(ti as u32);
+                    }
+                }
+            }
+        }
+        Ok(SurfaceIndex {
+            mesh,
+            origin: lo,
+            cell,
+            dims,
+            cells,
+        })
+    }
+
+    /// Distance from `p` to the nearest triangle, exact.
+    pub fn distance(&self, p: V3) -> f32 {
+        let c = [0, 1, 2].map(|k| ((p[k] - self.origin[k]) / self.cell).floor() as i64);
+        let mut best = f32::INFINITY;
+        // Enough rings to reach every cell from wherever p is, inside the grid or far outside.
+        let outside = (0..3)
+            .map(|k| (-c[k]).max(c[k] - (self.dims[k] as i64 - 1)).max(0))
+            .max()
+            .unwrap_or(0);
+        let max_ring = *self.dims.iter().max().unwrap_or(&1) as i64 + outside + 1;
+        for ring in 0..=max_ring {
+            // Every triangle within `ring` cells has been seen: nothing unseen is closer than
+            // the distance from p to the boundary of the searched block.
+            for dz in -ring..=ring {
+                for dy in -ring..=ring {
+                    for dx in -ring..=ring {
+                        if dx.abs().max(dy.abs()).max(dz.abs()) != ring {
+                            continue;
+                        }
+                        let (x, y, z) = (c[0] + dx, c[1] + dy, c[2] + dz);
+                        if x < 0 || y < 0 || z < 0 {
+                            continue;
+                        }
+                        let (x, y, z) = (x as usize, y as usize, z as usize);
+                        if x >= self.dims[0] || y >= self.dims[1] || z >= self.dims[2] {
+                            continue;
+                        }
+                        for &ti in &self.cells[(z * self.dims[1] + y) * self.dims[0] + x] {
+                            let t = self.mesh.triangles[ti as usize];
+                            let [a, b, cc] = t.map(|i| self.mesh.vertices[i as usize]);
+                            best = best.min(point_triangle_dist2(p, a, b, cc));
+                        }
+                    }
+                }
+            }
+            // Distance from p to the outside of the searched block of cells.
+            let reach = (0..3)
+                .map(|k| {
+                    let lo = self.origin[k] + (c[k] - ring) as f32 * self.cell;
+                    let hi = self.origin[k] + (c[k] + ring + 1) as f32 * self.cell;
+                    (p[k] - lo).min(hi - p[k])
+                })
+                .fold(f32::INFINITY, f32::min);
+            if best.is_finite() && best <= reach * reach.max(0.0) {
+                break;
+            }
+        }
+        best.sqrt()
+    }
+}
+
+/// Figures of one frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ReconScores {
+    /// Points scored.
+    pub points: usize,
+    /// Mean distance, mm.
+    pub mean_mm: f64,
+    /// RMS distance, mm.
+    pub rms_mm: f64,
+    /// 95th percentile distance, mm.
+    pub p95_mm: f64,
+}
+
+/// Scores `points` against `gt`; returns the scores and each point's distance. Non-finite
+/// points are an error naming how many (a reconstruction must not hold NaN).
+pub fn score(points: &[V3], gt: &Mesh) -> Result<(ReconScores, Vec<f32>), String> {
+    let bad = points
+        .iter()
+        .filter(|p| p.iter().any(|v| !v.is_finite()))
+        .count();
+    if bad > 0 {
+        return Err(format!(
+            "{bad} of {} reconstructed points are not finite",
+            points.len()
+        ));
+    }
+    if points.is_empty() {
+        return Err("the reconstruction has no points".into());
+    }
+    let index = SurfaceIndex::new(gt)?;
+    let dist: Vec<f32> = points.iter().map(|&p| index.distance(p)).collect();
+    let n = dist.len() as f64;
+    let mean = dist.iter().map(|&d| d as f64).sum::<f64>() / n;
+    let rms = (dist.iter().map(|&d| (d as f64).powi(2)).sum::<f64>() / n).sqrt();
+    let mut sorted = dist.clone();
+    sorted.sort_by(f32::total_cmp);
+    let rank = ((0.95 * n).ceil() as usize).clamp(1, sorted.len());
+    Ok((
+        ReconScores {
+            points: dist.len(),
+            mean_mm: mean,
+            rms_mm: rms,
+            p95_mm: sorted[rank - 1] as f64,
+        },
+        dist,
+    ))
+}
+
+/// Blue (0) to red (`max`) through green.
+fn error_color(d: f32, max: f32) -> [u8; 3] {
+    let t = (d / max.max(1e-6)).clamp(0.0, 1.0);
+    let r = (255.0 * (2.0 * t - 0.5).clamp(0.0, 1.0)) as u8;
+    let g = (255.0 * (1.0 - (2.0 * t - 1.0).abs())) as u8;
+    let b = (255.0 * (1.0 - 2.0 * t).clamp(0.0, 1.0)) as u8;
+    [r, g, b]
+}
+
+/// The node.
+pub struct EvalRecon {
+    params: Params,
+    sums: BTreeMap<String, (f64, u32)>,
+}
+
+impl Node for EvalRecon {
+    fn process(
+        &mut self,
+        _: &mut NodeContext,
+        _: FrameInfo,
+        inputs: &Inputs,
+        outputs: &mut Outputs,
+    ) -> NodeResult<Flow> {
+        let gt = inputs.get::<Mesh>("mesh_gt")?;
+        let points: &[V3] = if let Some(m) = inputs.opt::<SurfelModel>("model")? {
+            &m.positions
+        } else if let Some(pc) = inputs.opt::<PointCloud>("points")? {
+            &pc.positions
+        } else if let Some(mesh) = inputs.opt::<Mesh>("mesh")? {
+            &mesh.vertices
+        } else {
+            return Err(NodeError::msg("connect one of `model`, `points` or `mesh`"));
+        };
+        let (s, dist) = score(points, gt).map_err(NodeError::msg)?;
+        let k = |name: &str| format!("{}.{name}", self.params.prefix);
+        let mut m = Metrics::default();
+        for (key, v) in [
+            (k("mean_mm"), s.mean_mm),
+            (k("rms_mm"), s.rms_mm),
+            (k("p95_mm"), s.p95_mm),
+        ] {
+            let e = self.sums.entry(key.clone()).or_insert((0.0, 0));
+            e.0 += v;
+            e.1 += 1;
+            m.values.insert(key, v);
+        }
+        outputs.put("metrics", m)?;
+        outputs.put(
+            "colored",
+            PointCloud {
+                positions: points.to_vec(),
+                colors: Some(
+                    dist.iter()
+                        .map(|&d| error_color(d, self.params.color_max_mm))
+                        .collect(),
+                ),
+            },
+        )?;
+        Ok(Flow::Continue)
+    }
+
+    fn finish(&mut self, ctx: &mut NodeContext) -> NodeResult<()> {
+        for (k, (sum, n)) in &self.sums {
+            ctx.report_eval(k, sum / *n as f64);
+        }
+        Ok(())
+    }
+}
+
+/// Registers `eval.recon`.
+pub fn register(registry: &mut Registry) -> Result<(), String> {
+    registry.register(TypedPlugin::new(
+        "eval.recon",
+        "distance from a reconstruction to the GT surface of the same instant (mean, RMS, p95)",
+        vec![
+            PortSpec::new(
+                "mesh_gt",
+                PortType::Mesh,
+                "ground-truth surface, world frame",
+            ),
+            PortSpec::optional("model", PortType::Model, "surfel model, world frame"),
+            PortSpec::optional("points", PortType::PointCloud, "point cloud, world frame"),
+            PortSpec::optional(
+                "mesh",
+                PortType::Mesh,
+                "mesh (its vertices are scored), world frame",
+            ),
+        ],
+        vec![
+            PortSpec::new("metrics", PortType::Metrics, "the frame's figures"),
+            PortSpec::new(
+                "colored",
+                PortType::PointCloud,
+                "the points coloured by error",
+            ),
+        ],
+        |p: Params, _: &BuildContext| {
+            if !(p.color_max_mm > 0.0) {
+                return Err(BuildError::Param {
+                    key: Some("color_max_mm".into()),
+                    path: "color_max_mm".into(),
+                    message: "must be positive".into(),
+                });
+            }
+            Ok(EvalRecon {
+                params: p,
+                sums: BTreeMap::new(),
+            })
+        },
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 100 x 100 mm square at z = 100, as a 10 x 10 grid of triangle pairs.
+    fn plane() -> Mesh {
+        let n = 11;
+        let mut vertices = Vec::new();
+        for j in 0..n {
+            for i in 0..n {
+                vertices.push([i as f32 * 10.0 - 50.0, j as f32 * 10.0 - 50.0, 100.0]);
+            }
+        }
+        let mut triangles = Vec::new();
+        for j in 0..n - 1 {
+            for i in 0..n - 1 {
+                let a = (j * n + i) as u32;
+                triangles.push([a, a + 1, a + n as u32 + 1]);
+                triangles.push([a, a + n as u32 + 1, a + n as u32]);
+            }
+        }
+        Mesh {
+            vertices,
+            triangles,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn point_triangle_regions() {
+        let (a, b, c) = ([0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]);
+        assert_eq!(point_triangle_dist2([0.2, 0.2, 3.0], a, b, c), 9.0, "face");
+        assert_eq!(
+            point_triangle_dist2([-1.0, -1.0, 0.0], a, b, c),
+            2.0,
+            "vertex a"
+        );
+        assert_eq!(
+            point_triangle_dist2([0.5, -2.0, 0.0], a, b, c),
+            4.0,
+            "edge ab"
+        );
+        assert!(
+            (point_triangle_dist2([1.0, 1.0, 0.0], a, b, c) - 0.5).abs() < 1e-6,
+            "edge bc"
+        );
+    }
+
+    #[test]
+    fn known_offsets_give_known_figures() {
+        let gt = plane();
+        // 20 points: offsets 0.1, 0.2, ..., 2.0 mm above and below the plane, inside it.
+        let pts: Vec<V3> = (1..=20)
+            .map(|k| {
+                let s = if k % 2 == 0 { 1.0 } else { -1.0 };
+                [
+                    (k as f32 * 3.7) % 90.0 - 45.0,
+                    (k as f32 * 5.3) % 90.0 - 45.0,
+                    100.0 + s * 0.1 * k as f32,
+                ]
+            })
+            .collect();
+        let (s, d) = score(&pts, &gt).unwrap();
+        for (k, dk) in d.iter().enumerate() {
+            assert!((dk - 0.1 * (k + 1) as f32).abs() < 1e-4, "point {k}: {dk}");
+        }
+        let want_mean = (1..=20).map(|k| 0.1 * k as f64).sum::<f64>() / 20.0;
+        let want_rms = ((1..=20).map(|k| (0.1 * k as f64).powi(2)).sum::<f64>() / 20.0).sqrt();
+        assert!(
+            (s.mean_mm - want_mean).abs() < 1e-4,
+            "{} vs {want_mean}",
+            s.mean_mm
+        );
+        assert!((s.rms_mm - want_rms).abs() < 1e-4);
+        assert!(
+            (s.p95_mm - 1.9).abs() < 1e-4,
+            "nearest rank 19 of 20: {}",
+            s.p95_mm
+        );
+    }
+
+    #[test]
+    fn far_points_outside_the_mesh_are_measured_exactly() {
+        let gt = plane();
+        // 30 mm beyond the edge x = 50 and 40 mm above: distance 50 to the edge.
+        let (s, _) = score(&[[80.0, 0.0, 140.0]], &gt).unwrap();
+        assert!((s.mean_mm - 50.0).abs() < 1e-3, "{}", s.mean_mm);
+        assert!(score(&[[f32::NAN, 0.0, 0.0]], &gt)
+            .unwrap_err()
+            .contains("not finite"));
+        assert!(score(&[], &gt).is_err());
+    }
+}
