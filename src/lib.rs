@@ -20,6 +20,7 @@ pub const BUILTIN: &[RegisterFn] = &[
     misslam_image_gray::register,
     misslam_eval_depth::register,
     misslam_eval_recon::register,
+    misslam_eval_tracking::register,
 ];
 
 /// Every built-in plugin; an id clash is an error naming both.

@@ -92,3 +92,72 @@ fn export_opens_as_a_stereo_folder_with_matching_ground_truth() {
     assert_eq!(depth.data, f.depth.map.data);
     assert!(out.join("mesh_gt/2.ply").is_file() && out.join("rest_points_gt/2.pfm").is_file());
 }
+
+#[test]
+fn evaluation_nodes_report_their_keys_in_metrics_json() {
+    // GT scored against itself through the runtime: every error is exactly zero, density 100 %.
+    let text = r#"
+[graph]
+frames = { count = 3 }
+
+[[node]]
+id = "src"
+plugin = "source.phantom"
+params = { width = 96, height = 72, focal_px = 105.0, mesh_step_mm = 3.0 }
+
+[[node]]
+id = "depth"
+plugin = "eval.depth"
+inputs = { depth = "src.depth_gt", depth_gt = "src.depth_gt" }
+
+[[node]]
+id = "recon"
+plugin = "eval.recon"
+inputs = { mesh = "src.mesh_gt", mesh_gt = "src.mesh_gt" }
+
+[[node]]
+id = "track"
+plugin = "eval.tracking"
+inputs = { pose = "src.pose_gt", pose_gt = "src.pose_gt" }
+"#;
+    let out = common::tmp_dir("phantom-eval");
+    let g = graph::parse(
+        Path::new("eval.toml"),
+        text,
+        &misslam::builtin_registry(),
+        &[],
+    )
+    .unwrap();
+    let report = Runtime::build(g)
+        .unwrap()
+        .run(RunOptions {
+            out_dir: Some(out.clone()),
+            ..Default::default()
+        })
+        .unwrap();
+    assert!(
+        report.error.is_none(),
+        "{:?}",
+        report.error.map(|e| e.to_string())
+    );
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
+    let eval = &json["eval"];
+    for key in [
+        "depth.bad1_pct",
+        "depth.bad2_pct",
+        "depth.mae_mm",
+        "recon.mean_mm",
+        "recon.rms_mm",
+        "recon.p95_mm",
+        "tracking.ate_mm",
+        "tracking.rpe_mm",
+        "tracking.lost_pct",
+    ] {
+        let v = eval[key]
+            .as_f64()
+            .unwrap_or_else(|| panic!("`{key}` missing from {eval}"));
+        assert!(v.abs() < 1e-6, "{key} = {v}");
+    }
+    assert_eq!(eval["depth.density_pct"].as_f64(), Some(100.0));
+}
