@@ -359,7 +359,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
             ),
         ],
         |p: Params, _: &BuildContext| {
-            if !(p.color_max_mm > 0.0) {
+            if p.color_max_mm.is_nan() || p.color_max_mm <= 0.0 {
                 return Err(BuildError::Param {
                     key: Some("color_max_mm".into()),
                     path: "color_max_mm".into(),
