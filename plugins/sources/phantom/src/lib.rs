@@ -95,6 +95,10 @@ pub struct Params {
     pub vignetting: f32,
     /// Sensor noise, standard deviation in 8-bit levels (0: noise-free).
     pub noise_sigma: f32,
+    /// Motion blur: renders averaged over the exposure (1: none). Costs this many renders.
+    pub motion_blur_samples: u32,
+    /// Exposure time for motion blur, s.
+    pub exposure_s: f32,
 }
 
 impl Default for Params {
@@ -133,6 +137,8 @@ impl Default for Params {
             shininess: 60.0,
             vignetting: 0.25,
             noise_sigma: 2.0,
+            motion_blur_samples: 1,
+            exposure_s: 0.02,
         }
     }
 }
@@ -372,61 +378,67 @@ impl Phantom {
             return None;
         }
         let t = self.time(index);
-        let vertices = self.deformed_vertices(t);
-        let normals = grid_normals(&vertices, self.grid);
-        let world_from_left = self.pose(t);
-        let left_from_world = world_from_left.inverse();
-        let b = self.params.baseline_mm as f32;
-        let right_from_world = Translation3::new(-b, 0.0, 0.0) * left_from_world;
-        let (w, h) = (self.params.width, self.params.height);
-        let view = |cfw: Isometry3<f32>, cx: f64| View {
-            fx: self.calib.fx as f32,
-            fy: self.calib.fy as f32,
-            cx: cx as f32,
-            cy: self.calib.cy as f32,
-            width: w,
-            height: h,
-            camera_from_world: cfw,
-        };
-        let lv = view(left_from_world, self.calib.cx);
-        let rv = view(right_from_world, self.calib.cx_right);
-        // The two views are independent: render them in parallel.
-        let [cam_l, cam_r] = &mut self.cam;
-        let (tris, left, right) = (&self.triangles, &mut self.left, &mut self.right);
-        rayon::join(
-            || render::rasterize(&lv, &vertices, tris, cam_l, left),
-            || render::rasterize(&rv, &vertices, tris, cam_r, right),
-        );
-        // The light sits at the scope tip, between the two cameras.
-        let light = world_from_left * Point3::new(0.5 * b, 0.0, 0.0);
-        let left_centre = world_from_left * Point3::origin();
-        let right_centre = world_from_left * Point3::new(b, 0.0, 0.0);
         let seeds = [
             frame_seed(self.seed, index, 0),
             frame_seed(self.seed, index, 1),
         ];
-        let (left_img, right_img) = rayon::join(
-            || {
-                self.shade(
-                    &self.left,
-                    &vertices,
-                    &normals,
-                    light,
-                    left_centre,
-                    seeds[0],
-                )
-            },
-            || {
-                self.shade(
-                    &self.right,
-                    &vertices,
-                    &normals,
-                    light,
-                    right_centre,
-                    seeds[1],
-                )
-            },
-        );
+        let samples = self.params.motion_blur_samples.max(1);
+        let (left_img, right_img, vertices, normals, world_from_left) = if samples == 1 {
+            let (vertices, normals, world_from_left) = self.rasterize_at(t);
+            let (l, r) = self.shade_pair(
+                &vertices,
+                &normals,
+                world_from_left,
+                seeds,
+                self.params.noise_sigma,
+            );
+            (l, r, vertices, normals, world_from_left)
+        } else {
+            // Average noise-free renders spread over the exposure, then add the sensor noise once.
+            let exposure = self.params.exposure_s;
+            let n_px = (self.params.width * self.params.height * 3) as usize;
+            let (mut acc_l, mut acc_r) = (vec![0u32; n_px], vec![0u32; n_px]);
+            for k in 0..samples {
+                let ts = t + exposure * ((k as f32 + 0.5) / samples as f32 - 0.5);
+                let (v, n, pose) = self.rasterize_at(ts);
+                let (l, r) = self.shade_pair(&v, &n, pose, seeds, 0.0);
+                acc_l
+                    .iter_mut()
+                    .zip(&l.data)
+                    .for_each(|(a, &v)| *a += v as u32);
+                acc_r
+                    .iter_mut()
+                    .zip(&r.data)
+                    .for_each(|(a, &v)| *a += v as u32);
+            }
+            // Ground truth belongs to the middle of the exposure.
+            let (vertices, normals, world_from_left) = self.rasterize_at(t);
+            let finish = |acc: Vec<u32>, seed: u64| {
+                let mut rng = SplitMix(seed);
+                let mut noise = Noise::new(&self.gauss);
+                let data = acc
+                    .into_iter()
+                    .map(|a| {
+                        quantize(
+                            a as f32 / samples as f32,
+                            self.params.noise_sigma,
+                            &mut noise,
+                            &mut rng,
+                        )
+                    })
+                    .collect();
+                Image {
+                    width: self.params.width,
+                    height: self.params.height,
+                    channels: 3,
+                    data,
+                }
+            };
+            let l = finish(acc_l, seeds[0]);
+            let r = finish(acc_r, seeds[1]);
+            (l, r, vertices, normals, world_from_left)
+        };
+        let (w, h) = (self.params.width, self.params.height);
 
         let depth = FloatMap {
             width: w,
@@ -485,6 +497,75 @@ impl Phantom {
         })
     }
 
+    /// Deforms the mesh to time `t` and rasterises both views into `self.left` / `self.right`.
+    fn rasterize_at(&mut self, t: f32) -> (Vec<[f32; 3]>, Vec<[f32; 3]>, Isometry3<f32>) {
+        let vertices = self.deformed_vertices(t);
+        let normals = grid_normals(&vertices, self.grid);
+        let world_from_left = self.pose(t);
+        let left_from_world = world_from_left.inverse();
+        let b = self.params.baseline_mm as f32;
+        let right_from_world = Translation3::new(-b, 0.0, 0.0) * left_from_world;
+        let view = |cfw: Isometry3<f32>, cx: f64| View {
+            fx: self.calib.fx as f32,
+            fy: self.calib.fy as f32,
+            cx: cx as f32,
+            cy: self.calib.cy as f32,
+            width: self.params.width,
+            height: self.params.height,
+            camera_from_world: cfw,
+        };
+        let lv = view(left_from_world, self.calib.cx);
+        let rv = view(right_from_world, self.calib.cx_right);
+        // The two views are independent: render them in parallel.
+        let [cam_l, cam_r] = &mut self.cam;
+        let (tris, left, right) = (&self.triangles, &mut self.left, &mut self.right);
+        rayon::join(
+            || render::rasterize(&lv, &vertices, tris, cam_l, left),
+            || render::rasterize(&rv, &vertices, tris, cam_r, right),
+        );
+        (vertices, normals, world_from_left)
+    }
+
+    /// Shades both rasterised views, with sensor noise `sigma`.
+    fn shade_pair(
+        &self,
+        vertices: &[[f32; 3]],
+        normals: &[[f32; 3]],
+        world_from_left: Isometry3<f32>,
+        seeds: [u64; 2],
+        sigma: f32,
+    ) -> (Image, Image) {
+        let b = self.params.baseline_mm as f32;
+        // The light sits at the scope tip, between the two cameras.
+        let light = world_from_left * Point3::new(0.5 * b, 0.0, 0.0);
+        let left_centre = world_from_left * Point3::origin();
+        let right_centre = world_from_left * Point3::new(b, 0.0, 0.0);
+        rayon::join(
+            || {
+                self.shade(
+                    &self.left,
+                    vertices,
+                    normals,
+                    light,
+                    left_centre,
+                    seeds[0],
+                    sigma,
+                )
+            },
+            || {
+                self.shade(
+                    &self.right,
+                    vertices,
+                    normals,
+                    light,
+                    right_centre,
+                    seeds[1],
+                    sigma,
+                )
+            },
+        )
+    }
+
     #[allow(clippy::too_many_arguments)]
     fn shade(
         &self,
@@ -494,6 +575,7 @@ impl Phantom {
         light: Point3<f32>,
         eye: Point3<f32>,
         seed: u64,
+        sigma: f32,
     ) -> Image {
         let p = &self.params;
         let (w, h) = (p.width as usize, p.height as usize);
@@ -513,7 +595,7 @@ impl Phantom {
                 let Some(t) = self.triangles.get(r.triangle[i] as usize) else {
                     // Nothing seen: black (outside the tissue patch), noise included.
                     for v in px.iter_mut() {
-                        *v = quantize(0.0, p.noise_sigma, &mut noise, &mut rng);
+                        *v = quantize(0.0, sigma, &mut noise, &mut rng);
                     }
                     continue;
                 };
@@ -553,7 +635,7 @@ impl Phantom {
                     let radiance =
                         vignette * (a[k] * (p.ambient + (1.0 - p.ambient) * diffuse) + spec);
                     let lut = (radiance.clamp(0.0, 1.0) * (GAMMA_LUT - 1) as f32 + 0.5) as usize;
-                    px[k] = quantize(self.gamma[lut], p.noise_sigma, &mut noise, &mut rng);
+                    px[k] = quantize(self.gamma[lut], sigma, &mut noise, &mut rng);
                 }
             }
         }

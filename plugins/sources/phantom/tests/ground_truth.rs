@@ -304,3 +304,53 @@ fn depth_spans_the_hamlyn_like_range() {
     assert!(lo > 40.0 && hi < 120.0, "depth {lo}..{hi} mm");
     assert!(hi - lo > 15.0, "the heart bulges: {lo}..{hi} mm");
 }
+
+#[test]
+fn motion_blur_averages_over_the_exposure() {
+    let still = Params {
+        width: 96,
+        height: 72,
+        focal_px: 105.0,
+        trajectory: Trajectory::Static,
+        heartbeat_mm: Some(0.0),
+        breathing_mm: Some(0.0),
+        noise_sigma: 0.0,
+        ..Params::default()
+    };
+    // Nothing moves: the blurred image is the sharp one.
+    let (_, sharp) = render(still.clone(), 4);
+    let (_, blurred) = render(
+        Params {
+            motion_blur_samples: 5,
+            exposure_s: 0.05,
+            ..still.clone()
+        },
+        4,
+    );
+    assert_eq!(sharp.stereo.left.data, blurred.stereo.left.data);
+    // The fast segment: blur lowers the image's gradient energy; GT stays that of mid-exposure.
+    let fast = Params {
+        trajectory: Trajectory::Fast,
+        fast_start_s: 0.0,
+        fast_duration_s: 0.4,
+        ..still
+    };
+    let energy = |img: &[u8]| {
+        img.chunks_exact(3)
+            .collect::<Vec<_>>()
+            .windows(2)
+            .map(|w| (w[0][1] as i32 - w[1][1] as i32).pow(2) as u64)
+            .sum::<u64>()
+    };
+    let (_, sharp) = render(fast.clone(), 6);
+    let (_, blurred) = render(
+        Params {
+            motion_blur_samples: 8,
+            exposure_s: 0.05,
+            ..fast
+        },
+        6,
+    );
+    assert!(energy(&blurred.stereo.left.data) < energy(&sharp.stereo.left.data));
+    assert_eq!(sharp.depth.map.data, blurred.depth.map.data);
+}
