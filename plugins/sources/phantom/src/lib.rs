@@ -9,10 +9,12 @@
 //! deterministic from the seed.
 #![deny(missing_docs)]
 
+pub mod mesh_input;
 pub mod render;
 pub mod scene;
 pub mod texture;
 
+use std::path::PathBuf;
 use std::sync::Arc;
 
 use misslam_framework::nalgebra::{Isometry3, Point3, Translation3, Vector3};
@@ -29,8 +31,18 @@ use scene::{Motion, Scene, Trajectory};
 #[derive(Clone, Debug, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct Params {
-    /// Organ: "heart", "liver", "kidney" or "stomach".
+    /// Organ: "heart", "liver", "kidney" or "stomach" (ignored when `mesh` is set).
     pub scene: Scene,
+    /// A template surface to render instead of a procedural organ (Wavefront OBJ), e.g.
+    /// `../shared/data/heart/heart.obj`; its bounding-box centre is placed `distance_mm` ahead.
+    pub mesh: Option<PathBuf>,
+    /// Per-frame vertex positions of `mesh` (`.npy`, frames x vertices x 3, mm), e.g.
+    /// `../shared/data/heart/heart_trajectory.npy`; the sequence loops over its frames.
+    pub vertex_trajectory: Option<PathBuf>,
+    /// Frame rate of `vertex_trajectory`, Hz (default: `fps`).
+    pub trajectory_fps: Option<f64>,
+    /// Rotation applied to `mesh` about its centre before placing it (x, y, z Euler angles), degrees.
+    pub mesh_rotation_deg: [f32; 3],
     /// Length of the sequence in frames (the stream ends after it).
     pub frames: u64,
     /// Frame rate, Hz (frame n is at time n / fps).
@@ -105,6 +117,10 @@ impl Default for Params {
     fn default() -> Self {
         Params {
             scene: Scene::Heart,
+            mesh: None,
+            vertex_trajectory: None,
+            trajectory_fps: None,
+            mesh_rotation_deg: [0.0, 0.0, 0.0],
             frames: 300,
             fps: 30.0,
             seed: None,
@@ -170,8 +186,10 @@ pub struct Phantom {
     rest: Vec<[f32; 3]>,
     rest_normals: Vec<[f32; 3]>,
     triangles: Vec<[u32; 3]>,
-    grid: (usize, usize),
-    albedo: Atlas,
+    grid: Option<(usize, usize)>,
+    /// Template motion: (frames, placed positions frame by frame).
+    motion_frames: Option<(usize, Vec<[f32; 3]>)>,
+    albedo: Albedo,
     vertex_colors: Vec<[u8; 3]>,
     gamma: Vec<f32>,
     gauss: Vec<f32>,
@@ -270,30 +288,93 @@ impl Phantom {
             vessel_scale_mm: p.vessel_scale_mm,
             low_texture_fraction: p.low_texture_fraction,
         };
-        let mut rest = Vec::with_capacity(nx * ny);
-        let mut rest_normals = Vec::with_capacity(nx * ny);
-        let albedo = Atlas::bake(p.extent_mm, ATLAS_MM, &tex);
-        let mut vertex_colors = Vec::with_capacity(nx * ny);
-        for j in 0..ny {
-            for i in 0..nx {
-                let x = -0.5 * p.extent_mm[0] + i as f32 * p.extent_mm[0] / (nx - 1) as f32;
-                let y = -0.5 * p.extent_mm[1] + j as f32 * p.extent_mm[1] / (ny - 1) as f32;
-                rest.push(scene::rest_point(p.scene, x, y, p.distance_mm));
-                rest_normals.push(scene::rest_normal(p.scene, x, y, p.distance_mm));
-                vertex_colors.push(albedo.sample(x, y).map(to_srgb8));
+        let (rest, rest_normals, triangles, grid, motion_frames, albedo) = match &p.mesh {
+            None => {
+                let mut rest = Vec::with_capacity(nx * ny);
+                let mut rest_normals = Vec::with_capacity(nx * ny);
+                for j in 0..ny {
+                    for i in 0..nx {
+                        let x = -0.5 * p.extent_mm[0] + i as f32 * p.extent_mm[0] / (nx - 1) as f32;
+                        let y = -0.5 * p.extent_mm[1] + j as f32 * p.extent_mm[1] / (ny - 1) as f32;
+                        rest.push(scene::rest_point(p.scene, x, y, p.distance_mm));
+                        rest_normals.push(scene::rest_normal(p.scene, x, y, p.distance_mm));
+                    }
+                }
+                let mut triangles = Vec::with_capacity((nx - 1) * (ny - 1) * 2);
+                for j in 0..ny - 1 {
+                    for i in 0..nx - 1 {
+                        let a = (j * nx + i) as u32;
+                        let b = a + 1;
+                        let c = a + nx as u32;
+                        let d = c + 1;
+                        triangles.push([a, b, d]);
+                        triangles.push([a, d, c]);
+                    }
+                }
+                let half = [0.5 * p.extent_mm[0], 0.5 * p.extent_mm[1]];
+                let atlas = Atlas::bake([-half[0], -half[1]], half, ATLAS_MM, |x, y| {
+                    texture::albedo(x, y, &tex)
+                });
+                (
+                    rest,
+                    rest_normals,
+                    triangles,
+                    Some((nx, ny)),
+                    None,
+                    Albedo::Planar(atlas),
+                )
             }
-        }
-        let mut triangles = Vec::with_capacity((nx - 1) * (ny - 1) * 2);
-        for j in 0..ny - 1 {
-            for i in 0..nx - 1 {
-                let a = (j * nx + i) as u32;
-                let b = a + 1;
-                let c = a + nx as u32;
-                let d = c + 1;
-                triangles.push([a, b, d]);
-                triangles.push([a, d, c]);
+            Some(path) => {
+                let m = mesh_input::read_obj(path)?;
+                let (vertices, frames) = match &p.vertex_trajectory {
+                    None => (m.vertices.clone(), None),
+                    Some(tp) => {
+                        let (nf, nv, data) = mesh_input::read_npy_frames(tp)?;
+                        if nv != m.vertices.len() || nf == 0 {
+                            return Err(format!(
+                                "`vertex_trajectory` {} has {nv} vertices per frame ({nf} frames), the mesh {} has {}",
+                                tp.display(),
+                                path.display(),
+                                m.vertices.len()
+                            ));
+                        }
+                        (data[..nv].to_vec(), Some((nf, data)))
+                    }
+                };
+                let (lo, hi) = bounds(&vertices);
+                let centre = Vector3::from([0, 1, 2].map(|k| 0.5 * (lo[k] + hi[k])));
+                let r = p.mesh_rotation_deg.map(f32::to_radians);
+                let rot = misslam_framework::nalgebra::UnitQuaternion::from_euler_angles(
+                    r[0], r[1], r[2],
+                );
+                let place = |v: &[f32; 3]| {
+                    let q =
+                        rot * (Vector3::from(*v) - centre) + Vector3::new(0.0, 0.0, p.distance_mm);
+                    [q.x, q.y, q.z]
+                };
+                let rest: Vec<[f32; 3]> = vertices.iter().map(place).collect();
+                let motion =
+                    frames.map(|(nf, data)| (nf, data.iter().map(place).collect::<Vec<_>>()));
+                let rest_normals = mesh_normals(&rest, &m.triangles);
+                let (lo, hi) = bounds(&rest);
+                let plane = |a: usize, b: usize, shift: f32| {
+                    Atlas::bake([lo[a], lo[b]], [hi[a], hi[b]], ATLAS_MM, |x, y| {
+                        texture::albedo(x + shift, y, &tex)
+                    })
+                };
+                let albedo = Albedo::Triplanar {
+                    yz: plane(1, 2, 0.0),
+                    xz: plane(0, 2, 1000.0),
+                    xy: plane(0, 1, 2000.0),
+                };
+                (rest, rest_normals, m.triangles, None, motion, albedo)
             }
-        }
+        };
+        let vertex_colors = rest
+            .iter()
+            .zip(&rest_normals)
+            .map(|(r, n)| albedo.sample(*r, *n).map(to_srgb8))
+            .collect();
         let calib = StereoCalib {
             width: p.width,
             height: p.height,
@@ -312,7 +393,8 @@ impl Phantom {
             rest,
             rest_normals,
             triangles,
-            grid: (nx, ny),
+            grid,
+            motion_frames,
             albedo,
             vertex_colors,
             gamma: (0..GAMMA_LUT)
@@ -340,8 +422,9 @@ impl Phantom {
         &self.triangles
     }
 
-    /// Grid size (vertices along x, along y); vertex (i, j) has index `j * nx + i`.
-    pub fn grid(&self) -> (usize, usize) {
+    /// Grid size of a procedural organ (vertices along x, along y; vertex (i, j) has index
+    /// `j * nx + i`); `None` for a template mesh.
+    pub fn grid(&self) -> Option<(usize, usize)> {
         self.grid
     }
 
@@ -357,6 +440,19 @@ impl Phantom {
 
     /// Deformed vertex positions at time `t`.
     pub fn deformed_vertices(&self, t: f32) -> Vec<[f32; 3]> {
+        if let Some((nf, data)) = &self.motion_frames {
+            // Linear between the template's frames, looping over them.
+            let nv = self.rest.len();
+            let f = (t as f64 * self.params.trajectory_fps.unwrap_or(self.params.fps)).max(0.0);
+            let (k0, w) = (f.floor() as usize, (f - f.floor()) as f32);
+            let (a, b) = (k0 % nf, (k0 + 1) % nf);
+            let (fa, fb) = (&data[a * nv..(a + 1) * nv], &data[b * nv..(b + 1) * nv]);
+            return fa
+                .iter()
+                .zip(fb)
+                .map(|(p, q)| [0, 1, 2].map(|k| p[k] + w * (q[k] - p[k])))
+                .collect();
+        }
         self.rest
             .iter()
             .zip(&self.rest_normals)
@@ -500,7 +596,10 @@ impl Phantom {
     /// Deforms the mesh to time `t` and rasterises both views into `self.left` / `self.right`.
     fn rasterize_at(&mut self, t: f32) -> (Vec<[f32; 3]>, Vec<[f32; 3]>, Isometry3<f32>) {
         let vertices = self.deformed_vertices(t);
-        let normals = grid_normals(&vertices, self.grid);
+        let normals = match self.grid {
+            Some(grid) => grid_normals(&vertices, grid),
+            None => mesh_normals(&vertices, &self.triangles),
+        };
         let world_from_left = self.pose(t);
         let left_from_world = world_from_left.inverse();
         let b = self.params.baseline_mm as f32;
@@ -609,9 +708,16 @@ impl Phantom {
                     [0, 1, 2].map(|k| bw[0] * a0[k] + bw[1] * a1[k] + bw[2] * a2[k])
                 };
                 let (pos, n, rest) = (lerp(vertices), lerp(normals), lerp(&self.rest));
-                let a = self.albedo.sample(rest[0], rest[1]);
+                let a = match self.albedo {
+                    Albedo::Planar(ref atlas) => atlas.sample(rest[0], rest[1]),
+                    Albedo::Triplanar { .. } => self.albedo.sample(rest, lerp(&self.rest_normals)),
+                };
                 let pos = Vector3::new(pos[0], pos[1], pos[2]);
-                let n = Vector3::new(n[0], n[1], n[2]).normalize();
+                let mut n = Vector3::new(n[0], n[1], n[2]).normalize();
+                // Two-sided: a surface seen from its back is lit as its front.
+                if n.dot(&(eye.coords - pos)) < 0.0 {
+                    n = -n;
+                }
                 let to_light = light.coords - pos;
                 let dist = to_light.norm();
                 let l = to_light / dist;
@@ -647,10 +753,70 @@ impl Phantom {
         }
     }
 
-    /// Albedo (linear RGB) at a rest point (uses its x and y on the parameter plane).
-    pub fn albedo_at(&self, rest: [f32; 3]) -> [f32; 3] {
-        self.albedo.sample(rest[0], rest[1])
+    /// Albedo (linear RGB) at a rest point with its rest normal.
+    pub fn albedo_at(&self, rest: [f32; 3], normal: [f32; 3]) -> [f32; 3] {
+        self.albedo.sample(rest, normal)
     }
+}
+
+/// How albedo is looked up: on the procedural organ's parameter plane, or triplanar on a
+/// template mesh (three planar atlases blended by the rest normal).
+enum Albedo {
+    Planar(Atlas),
+    Triplanar { yz: Atlas, xz: Atlas, xy: Atlas },
+}
+
+impl Albedo {
+    fn sample(&self, p: [f32; 3], n: [f32; 3]) -> [f32; 3] {
+        match self {
+            Albedo::Planar(a) => a.sample(p[0], p[1]),
+            Albedo::Triplanar { yz, xz, xy } => {
+                let w = n.map(|c| c.abs().powi(4));
+                let sum = (w[0] + w[1] + w[2]).max(1e-12);
+                let (a, b, c) = (
+                    yz.sample(p[1], p[2]),
+                    xz.sample(p[0], p[2]),
+                    xy.sample(p[0], p[1]),
+                );
+                [0, 1, 2].map(|k| (w[0] * a[k] + w[1] * b[k] + w[2] * c[k]) / sum)
+            }
+        }
+    }
+}
+
+fn bounds(v: &[[f32; 3]]) -> ([f32; 3], [f32; 3]) {
+    let mut lo = [f32::INFINITY; 3];
+    let mut hi = [f32::NEG_INFINITY; 3];
+    for p in v {
+        for k in 0..3 {
+            lo[k] = lo[k].min(p[k]);
+            hi[k] = hi[k].max(p[k]);
+        }
+    }
+    (lo, hi)
+}
+
+/// Area-weighted vertex normals of a triangle mesh, oriented toward the scope (-z) on average.
+fn mesh_normals(v: &[[f32; 3]], triangles: &[[u32; 3]]) -> Vec<[f32; 3]> {
+    let mut acc = vec![Vector3::<f32>::zeros(); v.len()];
+    for t in triangles {
+        let [a, b, c] = t.map(|i| Vector3::from(v[i as usize]));
+        let n = (b - a).cross(&(c - a));
+        for &i in t {
+            acc[i as usize] += n;
+        }
+    }
+    // One orientation for the whole surface: the one facing the scope for most of it.
+    let facing: f32 = acc.iter().map(|n| -n.z).sum();
+    let sign = if facing < 0.0 { -1.0 } else { 1.0 };
+    acc.into_iter()
+        .map(|n| {
+            let n = (sign * n)
+                .try_normalize(1e-12)
+                .unwrap_or(Vector3::new(0.0, 0.0, -1.0));
+            [n.x, n.y, n.z]
+        })
+        .collect()
 }
 
 /// Texel size of the baked albedo, mm (about 1 px at the nearest tissue).
@@ -666,18 +832,14 @@ struct Atlas {
 }
 
 impl Atlas {
-    fn bake(extent: [f32; 2], step: f32, tex: &texture::TextureParams) -> Self {
-        let nx = (extent[0] / step).ceil() as usize + 2;
-        let ny = (extent[1] / step).ceil() as usize + 2;
-        let origin = [-0.5 * extent[0] - step, -0.5 * extent[1] - step];
+    fn bake(lo: [f32; 2], hi: [f32; 2], step: f32, f: impl Fn(f32, f32) -> [f32; 3]) -> Self {
+        let nx = ((hi[0] - lo[0]) / step).ceil() as usize + 3;
+        let ny = ((hi[1] - lo[1]) / step).ceil() as usize + 3;
+        let origin = [lo[0] - step, lo[1] - step];
         let mut texels = Vec::with_capacity(nx * ny);
         for j in 0..ny {
             for i in 0..nx {
-                texels.push(texture::albedo(
-                    origin[0] + i as f32 * step,
-                    origin[1] + j as f32 * step,
-                    tex,
-                ));
+                texels.push(f(origin[0] + i as f32 * step, origin[1] + j as f32 * step));
             }
         }
         Atlas {

@@ -154,7 +154,7 @@ fn gt_mesh_ray_cast_from_gt_pose_gives_gt_depth() {
 fn gt_correspondences_land_on_the_pixels_that_see_them() {
     let p = noise_free(Scene::Heart);
     let (ph, f) = render(p, 60);
-    let (nx, ny) = ph.grid();
+    let (nx, ny) = ph.grid().unwrap();
     let rest = ph.rest_vertices();
     let step = [
         (rest[1][0] - rest[0][0]) as f64,
@@ -353,4 +353,166 @@ fn motion_blur_averages_over_the_exposure() {
     );
     assert!(energy(&blurred.stereo.left.data) < energy(&sharp.stereo.left.data));
     assert_eq!(sharp.depth.map.data, blurred.depth.map.data);
+}
+
+fn heart_data() -> Option<(std::path::PathBuf, std::path::PathBuf)> {
+    let dir =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../../shared/data/heart");
+    let (obj, npy) = (dir.join("heart.obj"), dir.join("heart_trajectory.npy"));
+    if obj.is_file() && npy.is_file() {
+        Some((obj, npy))
+    } else {
+        println!("skipped: ../shared/data/heart is absent");
+        None
+    }
+}
+
+#[test]
+fn heart_mesh_follows_its_trajectory_with_exact_ground_truth() {
+    let Some((obj, npy)) = heart_data() else {
+        return;
+    };
+    let p = Params {
+        mesh: Some(obj),
+        vertex_trajectory: Some(npy),
+        width: 160,
+        height: 120,
+        focal_px: 175.0,
+        trajectory: Trajectory::Static,
+        noise_sigma: 0.0,
+        ..Params::default()
+    };
+    let mut ph = Phantom::new(p, 3).unwrap();
+    let rest = ph.rest_vertices().to_vec();
+    // Displacements are those of the data (placing the mesh is a rigid motion): from
+    // heart_trajectory.npy, the largest vertex displacement is 0.0884 mm at frame 1 and
+    // 1.0167 mm at frame 11.
+    for (frame, want) in [(1u64, 0.0884), (11, 1.0167)] {
+        let f = ph.render(frame).unwrap();
+        let max = f
+            .mesh
+            .vertices
+            .iter()
+            .zip(&rest)
+            .map(|(a, b)| {
+                ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+            })
+            .fold(0.0f32, f32::max);
+        assert!((max - want).abs() < 2e-3, "frame {frame}: {max} vs {want}");
+    }
+    // Ray cast of the GT mesh from the GT pose gives the GT depth; correspondences land home.
+    let f = ph.render(30).unwrap();
+    let c = f.depth.calib;
+    let cfw = f.pose.world_from_camera.inverse();
+    let to_cam = |v: [f32; 3]| (cfw * Point3::new(v[0] as f64, v[1] as f64, v[2] as f64)).coords;
+    let verts: Vec<Vector3<f64>> = f.mesh.vertices.iter().map(|v| to_cam(*v)).collect();
+    let tris = ph.triangles();
+    let (w, h) = (c.width as usize, c.height as usize);
+    let (mut hits, mut checked) = (0, 0);
+    for y in (2..h).step_by(9) {
+        for x in (3..w).step_by(11) {
+            let dir = Vector3::new((x as f64 - c.cx) / c.fx, (y as f64 - c.cy) / c.fy, 1.0);
+            let best = tris
+                .iter()
+                .filter_map(|t| {
+                    ray_triangle(
+                        dir,
+                        verts[t[0] as usize],
+                        verts[t[1] as usize],
+                        verts[t[2] as usize],
+                    )
+                })
+                .fold(f64::INFINITY, f64::min);
+            let gt = f.depth.map.data[y * w + x] as f64;
+            if !best.is_finite() {
+                assert!(gt.is_nan(), "({x},{y}) sees nothing but has GT {gt}");
+                continue;
+            }
+            assert!((best - gt).abs() < 2e-3, "({x},{y}): ray {best} vs GT {gt}");
+            hits += 1;
+            // The rest point lies on one rest triangle; the same barycentrics on the deformed
+            // mesh give a point that projects onto this pixel.
+            let r = f.rest_points.points[y * w + x];
+            let r = Vector3::new(r[0] as f64, r[1] as f64, r[2] as f64);
+            let mut found = false;
+            for t in tris {
+                let [a, b, cc] = t.map(|i| {
+                    let v = rest[i as usize];
+                    Vector3::new(v[0] as f64, v[1] as f64, v[2] as f64)
+                });
+                let (e1, e2, d) = (b - a, cc - a, r - a);
+                let n = e1.cross(&e2);
+                if n.norm() < 1e-12 || (d.dot(&n) / n.norm()).abs() > 1e-3 {
+                    continue;
+                }
+                let (d00, d01, d11, d20, d21) = (
+                    e1.dot(&e1),
+                    e1.dot(&e2),
+                    e2.dot(&e2),
+                    d.dot(&e1),
+                    d.dot(&e2),
+                );
+                let den = d00 * d11 - d01 * d01;
+                let (v, wgt) = ((d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den);
+                let u = 1.0 - v - wgt;
+                if u < -1e-4 || v < -1e-4 || wgt < -1e-4 {
+                    continue;
+                }
+                let q = u * verts[t[0] as usize]
+                    + v * verts[t[1] as usize]
+                    + wgt * verts[t[2] as usize];
+                let (px, py) = (c.fx * q.x / q.z + c.cx, c.fy * q.y / q.z + c.cy);
+                if (px - x as f64).abs() < 0.02
+                    && (py - y as f64).abs() < 0.02
+                    && (q.z - gt).abs() < 2e-3
+                {
+                    found = true;
+                    break;
+                }
+            }
+            assert!(found, "({x},{y}): its rest point does not map back to it");
+            checked += 1;
+        }
+    }
+    assert!(
+        hits > 50 && checked == hits,
+        "{hits} hits, {checked} checked"
+    );
+}
+
+#[test]
+fn a_trajectory_for_another_mesh_is_refused() {
+    let dir = std::env::temp_dir().join(format!("misslam-phantom-mesh-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(
+        dir.join("tri.obj"),
+        "v 0 0 0\nv 10 0 0\nv 0 10 0\nf 1 2 3\n",
+    )
+    .unwrap();
+    // A (1, 2, 3) f4 array: two vertices, the mesh has three.
+    let mut h = "{'descr': '<f4', 'fortran_order': False, 'shape': (1, 2, 3), }".to_string();
+    while (10 + h.len() + 1) % 64 != 0 {
+        h.push(' ');
+    }
+    h.push('\n');
+    let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
+    bytes.extend((h.len() as u16).to_le_bytes());
+    bytes.extend(h.as_bytes());
+    bytes.extend([0u8; 24]);
+    std::fs::write(dir.join("traj.npy"), bytes).unwrap();
+    let e = Phantom::new(
+        Params {
+            mesh: Some(dir.join("tri.obj")),
+            vertex_trajectory: Some(dir.join("traj.npy")),
+            ..Params::default()
+        },
+        0,
+    )
+    .err()
+    .unwrap();
+    assert!(
+        e.contains("traj.npy has 2 vertices per frame (1 frames), the mesh")
+            && e.ends_with("tri.obj has 3"),
+        "{e}"
+    );
 }
