@@ -121,9 +121,60 @@ impl RunMetrics {
     }
 }
 
+/// Per-frame figures of an evaluation node, averaged over the run: the node adds each frame's
+/// values (also returned as the frame's [`crate::Metrics`]) and reports the means in `finish`.
+/// Non-finite values (a frame with nothing to score) add nothing to the means.
+#[derive(Clone, Debug, Default)]
+pub struct FrameMeans {
+    sums: BTreeMap<String, (f64, u32)>,
+}
+
+impl FrameMeans {
+    /// Adds one frame's figures and returns them as that frame's metrics payload.
+    pub fn add(&mut self, values: impl IntoIterator<Item = (String, f64)>) -> crate::Metrics {
+        let mut m = crate::Metrics::default();
+        for (k, v) in values {
+            if v.is_finite() {
+                let e = self.sums.entry(k.clone()).or_insert((0.0, 0));
+                e.0 += v;
+                e.1 += 1;
+            }
+            m.values.insert(k, v);
+        }
+        m
+    }
+
+    /// The mean of every key seen with a finite value.
+    pub fn means(&self) -> impl Iterator<Item = (&str, f64)> {
+        self.sums
+            .iter()
+            .map(|(k, (s, n))| (k.as_str(), s / *n as f64))
+    }
+
+    /// Reports the means as evaluation figures (for `metrics.json`).
+    pub fn report(&self, ctx: &mut crate::NodeContext) {
+        for (k, v) in self.means() {
+            ctx.report_eval(k, v);
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn frame_means_skip_non_finite_values() {
+        let mut f = FrameMeans::default();
+        let m = f.add([("a".to_owned(), 1.0), ("b".to_owned(), f64::NAN)]);
+        assert!(
+            m.values["b"].is_nan(),
+            "the frame's payload keeps what was measured"
+        );
+        f.add([("a".to_owned(), 3.0), ("b".to_owned(), 4.0)]);
+        let means: Vec<(&str, f64)> = f.means().collect();
+        assert_eq!(means, [("a", 2.0), ("b", 4.0)]);
+    }
 
     #[test]
     fn stats_of_known_samples() {

@@ -13,11 +13,10 @@
 //! stereo method is scored on the same scale. Run summaries are means of the per-frame figures.
 #![deny(missing_docs)]
 
-use std::collections::BTreeMap;
-
+use misslam_framework::metrics::FrameMeans;
 use misslam_framework::{
-    BuildContext, BuildError, DepthMap, Flow, FrameInfo, Inputs, Metrics, Node, NodeContext,
-    NodeError, NodeResult, Outputs, PortSpec, PortType, Registry, TypedPlugin,
+    BuildContext, BuildError, DepthMap, Flow, FrameInfo, Inputs, Node, NodeContext, NodeError,
+    NodeResult, Outputs, PortSpec, PortType, Registry, TypedPlugin,
 };
 
 /// Parameters of `eval.depth`.
@@ -119,7 +118,7 @@ pub fn score(est: &DepthMap, gt: &DepthMap, p: &Params) -> Result<DepthScores, S
 /// The node: scores every frame, reports the means at the end.
 pub struct EvalDepth {
     params: Params,
-    sums: BTreeMap<String, (f64, u32)>,
+    means: FrameMeans,
 }
 
 impl EvalDepth {
@@ -146,24 +145,13 @@ impl Node for EvalDepth {
         let est = inputs.get::<DepthMap>("depth")?;
         let gt = inputs.get::<DepthMap>("depth_gt")?;
         let s = score(est, gt, &self.params).map_err(NodeError::msg)?;
-        let mut m = Metrics::default();
-        for (k, v) in self.keys(&s) {
-            // A frame without evaluable pixels adds nothing to the means.
-            if v.is_finite() {
-                let e = self.sums.entry(k.clone()).or_insert((0.0, 0));
-                e.0 += v;
-                e.1 += 1;
-            }
-            m.values.insert(k, v);
-        }
+        let m = self.means.add(self.keys(&s));
         outputs.put("metrics", m)?;
         Ok(Flow::Continue)
     }
 
     fn finish(&mut self, ctx: &mut NodeContext) -> NodeResult<()> {
-        for (k, (sum, n)) in &self.sums {
-            ctx.report_eval(k, sum / *n as f64);
-        }
+        self.means.report(ctx);
         Ok(())
     }
 }
@@ -203,7 +191,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
             }
             Ok(EvalDepth {
                 params: p,
-                sums: BTreeMap::new(),
+                means: FrameMeans::default(),
             })
         },
     ))
@@ -212,6 +200,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use misslam_framework::metrics::FrameMeans;
     use misslam_framework::{FloatMap, StereoCalib};
 
     fn calib() -> StereoCalib {

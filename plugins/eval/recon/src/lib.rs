@@ -12,10 +12,9 @@
 //! their error (blue 0 to red `color_max_mm`), go out on `colored` for the Rerun viewer.
 #![deny(missing_docs)]
 
-use std::collections::BTreeMap;
-
+use misslam_framework::metrics::FrameMeans;
 use misslam_framework::{
-    BuildContext, BuildError, Flow, FrameInfo, Inputs, Mesh, Metrics, Node, NodeContext, NodeError,
+    BuildContext, BuildError, Flow, FrameInfo, Inputs, Mesh, Node, NodeContext, NodeError,
     NodeResult, Outputs, PointCloud, PortSpec, PortType, Registry, SurfelModel, TypedPlugin,
 };
 
@@ -274,7 +273,7 @@ fn error_color(d: f32, max: f32) -> [u8; 3] {
 /// The node.
 pub struct EvalRecon {
     params: Params,
-    sums: BTreeMap<String, (f64, u32)>,
+    means: FrameMeans,
 }
 
 impl Node for EvalRecon {
@@ -297,17 +296,11 @@ impl Node for EvalRecon {
         };
         let (s, dist) = score(points, gt).map_err(NodeError::msg)?;
         let k = |name: &str| format!("{}.{name}", self.params.prefix);
-        let mut m = Metrics::default();
-        for (key, v) in [
+        let m = self.means.add([
             (k("mean_mm"), s.mean_mm),
             (k("rms_mm"), s.rms_mm),
             (k("p95_mm"), s.p95_mm),
-        ] {
-            let e = self.sums.entry(key.clone()).or_insert((0.0, 0));
-            e.0 += v;
-            e.1 += 1;
-            m.values.insert(key, v);
-        }
+        ]);
         outputs.put("metrics", m)?;
         outputs.put(
             "colored",
@@ -324,9 +317,7 @@ impl Node for EvalRecon {
     }
 
     fn finish(&mut self, ctx: &mut NodeContext) -> NodeResult<()> {
-        for (k, (sum, n)) in &self.sums {
-            ctx.report_eval(k, sum / *n as f64);
-        }
+        self.means.report(ctx);
         Ok(())
     }
 }
@@ -368,7 +359,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
             }
             Ok(EvalRecon {
                 params: p,
-                sums: BTreeMap::new(),
+                means: FrameMeans::default(),
             })
         },
     ))
