@@ -411,7 +411,11 @@ impl Node for DynamicNode {
                         Payload::Disparity(Arc::new(DisparityMap { map, calib }))
                     }
                 }
-                _ => unreachable!("dynamic ports are images or maps"),
+                other => {
+                    return Err(NodeError::msg(format!(
+                        "dynamic plugins cannot output {other}"
+                    )));
+                }
             };
             outputs.put_payload(&spec.name, payload)?;
         }
