@@ -53,10 +53,13 @@ mod tests {
         assert_eq!(
             ids,
             [
+                "eval.depth",
+                "eval.recon",
+                "eval.tracking",
                 "image.gray",
                 "sink.files",
                 "source.phantom",
-                "source.stereo_folder"
+                "source.stereo_folder",
             ]
         );
         for p in r.iter() {
