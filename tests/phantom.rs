@@ -91,6 +91,20 @@ fn export_opens_as_a_stereo_folder_with_matching_ground_truth() {
     let depth = misslam_sink_files::pfm::read_pfm(&out.join("depth_gt/2.pfm")).unwrap();
     assert_eq!(depth.data, f.depth.map.data);
     assert!(out.join("mesh_gt/2.ply").is_file() && out.join("rest_points_gt/2.pfm").is_file());
+    // The folder source hands the exported GT on.
+    let with_gt = StereoFolder::open(
+        FolderParams {
+            path: out.clone(),
+            depth_gt: misslam_source_stereo_folder::depth_gt::DepthGtFormat::Pfm,
+            ..FolderParams::default()
+        },
+        out.clone(),
+    )
+    .unwrap();
+    assert_eq!(
+        with_gt.read_depth_gt(2).unwrap().unwrap().map.data,
+        f.depth.map.data
+    );
 }
 
 #[test]

@@ -10,6 +10,7 @@ pub mod graph;
 pub mod metrics;
 pub mod node;
 pub mod payload;
+pub mod pfm;
 pub mod recorder;
 pub mod registry;
 pub mod runtime;

@@ -4,7 +4,8 @@
 #![deny(missing_docs)]
 
 pub mod mesh_io;
-pub mod pfm;
+/// PFM codec (lives in the framework, shared with sources).
+pub use misslam_framework::pfm;
 
 use std::path::{Path, PathBuf};
 

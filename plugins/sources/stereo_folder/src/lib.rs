@@ -7,14 +7,16 @@
 #![deny(missing_docs)]
 
 pub mod calib;
+pub mod depth_gt;
 pub mod mask;
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use misslam_framework::{
-    BuildContext, BuildError, Flow, FrameInfo, Image, Inputs, Node, NodeContext, NodeError,
-    NodeResult, Outputs, PortSpec, PortType, Registry, StereoCalib, StereoFrame, TypedPlugin,
+    BuildContext, BuildError, DepthMap, Flow, FrameInfo, Image, Inputs, Node, NodeContext,
+    NodeError, NodeResult, Outputs, PortSpec, PortType, Registry, StereoCalib, StereoFrame,
+    TypedPlugin,
 };
 
 pub use calib::{read_calib, CalibError};
@@ -41,6 +43,11 @@ pub struct Params {
     pub mask_border: bool,
     /// Intensity at or below which a border pixel counts as black.
     pub border_threshold: u8,
+    /// Ground-truth depth beside the images: "none", "pfm" (`<n>.pfm`, mm) or "colonsyn_rgb"
+    /// (`depth_<n:07>.png`, the synthetic colon sets' RGB code); sent on `depth_gt`.
+    pub depth_gt: depth_gt::DepthGtFormat,
+    /// Folder of the ground-truth depth inside `path`.
+    pub depth_gt_dir: String,
 }
 
 impl Default for Params {
@@ -54,6 +61,8 @@ impl Default for Params {
             fps: 30.0,
             mask_border: true,
             border_threshold: 8,
+            depth_gt: depth_gt::DepthGtFormat::None,
+            depth_gt_dir: "depth_gt".into(),
         }
     }
 }
@@ -243,6 +252,23 @@ impl StereoFolder {
     pub fn root(&self) -> &Path {
         &self.root
     }
+
+    /// Ground-truth depth of pair `i` (mm), when the folder has it (`depth_gt` parameter).
+    pub fn read_depth_gt(&self, i: usize) -> Result<Option<DepthMap>, String> {
+        let Some(files) = self.pairs.get(i) else {
+            return Ok(None);
+        };
+        let dir = self.root.join(&self.params.depth_gt_dir);
+        let size = (self.calib.width, self.calib.height);
+        Ok(
+            depth_gt::read_depth_gt(&dir, self.params.depth_gt, files.number, size)?.map(|map| {
+                DepthMap {
+                    map,
+                    calib: self.calib,
+                }
+            }),
+        )
+    }
 }
 
 fn find_calib(root: &Path) -> Result<PathBuf, String> {
@@ -286,6 +312,13 @@ impl Node for StereoFolderNode {
             return Ok(Flow::EndOfStream);
         };
         let pair = Arc::new(pair.map_err(NodeError::msg)?);
+        if let Some(gt) = self
+            .folder
+            .read_depth_gt(frame.index as usize)
+            .map_err(NodeError::msg)?
+        {
+            outputs.put("depth_gt", gt)?;
+        }
         outputs.put_arc("left", pair.left.clone())?;
         outputs.put_arc("right", pair.right.clone())?;
         outputs.put_arc("stereo", pair)?;
@@ -303,6 +336,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
             PortSpec::new("stereo", PortType::Stereo, "the pair with calibration and border masks"),
             PortSpec::new("left", PortType::Image, "left image (shared, not copied)"),
             PortSpec::new("right", PortType::Image, "right image (shared, not copied)"),
+            PortSpec::optional("depth_gt", PortType::Depth, "ground-truth depth of the left view, mm (with `depth_gt`)"),
         ],
         |p: Params, ctx: &BuildContext| {
             if p.path.as_os_str().is_empty() {

@@ -4,7 +4,7 @@
 use std::io::{self, BufRead, BufReader, Read, Write};
 use std::path::Path;
 
-use misslam_framework::FloatMap;
+use crate::payload::FloatMap;
 
 /// Writes a one-channel little-endian PFM.
 pub fn write_pfm(path: &Path, map: &FloatMap) -> io::Result<()> {
