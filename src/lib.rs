@@ -3,6 +3,7 @@
 #![deny(missing_docs)]
 
 pub mod bench;
+pub mod eval_cli;
 pub mod phantom_export;
 
 pub use misslam_framework as framework;

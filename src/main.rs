@@ -60,6 +60,11 @@ enum Command {
         #[arg(long = "library", value_name = "PATH")]
         libraries: Vec<PathBuf>,
     },
+    /// Score results saved by a run against ground truth.
+    Eval {
+        #[command(subcommand)]
+        which: EvalCommand,
+    },
     /// The built-in phantom.
     Phantom {
         #[command(subcommand)]
@@ -69,6 +74,31 @@ enum Command {
     Bench {
         #[command(subcommand)]
         which: BenchCommand,
+    },
+}
+
+#[derive(Subcommand)]
+enum EvalCommand {
+    /// Depth maps (`<frame>.pfm`, mm, as sink.files writes them) against a dataset's GT depth.
+    Depth {
+        /// Folder of estimated depth, e.g. out/run/files/depth.
+        #[arg(long)]
+        est: PathBuf,
+        /// The dataset folder the run read (its GT depth and calibration are used).
+        #[arg(long)]
+        dataset: PathBuf,
+        /// How the dataset stores GT depth: pfm or colonsyn_rgb.
+        #[arg(long, default_value = "pfm")]
+        gt_format: String,
+        /// Nearest GT depth evaluated, mm.
+        #[arg(long, default_value_t = 0.0)]
+        min_depth_mm: f32,
+        /// Farthest GT depth evaluated, mm.
+        #[arg(long, default_value_t = f32::MAX)]
+        max_depth_mm: f32,
+        /// Also write per-frame rows and the summary as JSON here.
+        #[arg(long)]
+        out: Option<PathBuf>,
     },
 }
 
@@ -203,6 +233,52 @@ fn run(command: Command) -> anyhow::Result<()> {
             }
             if let Some(path) = out {
                 std::fs::write(&path, serde_json::to_string_pretty(&rows)?)
+                    .with_context(|| format!("writing {}", path.display()))?;
+            }
+            Ok(())
+        }
+        Command::Eval {
+            which:
+                EvalCommand::Depth {
+                    est,
+                    dataset,
+                    gt_format,
+                    min_depth_mm,
+                    max_depth_mm,
+                    out,
+                },
+        } => {
+            let format = match gt_format.as_str() {
+                "pfm" => misslam_source_stereo_folder::depth_gt::DepthGtFormat::Pfm,
+                "colonsyn_rgb" => {
+                    misslam_source_stereo_folder::depth_gt::DepthGtFormat::ColonsynRgb
+                }
+                other => anyhow::bail!("--gt-format `{other}`: expected pfm or colonsyn_rgb"),
+            };
+            let params = misslam_eval_depth::Params {
+                min_depth_mm,
+                max_depth_mm,
+                ..Default::default()
+            };
+            let rows = misslam::eval_cli::eval_depth(&est, &dataset, format, &params)
+                .map_err(anyhow::Error::msg)?;
+            println!(
+                "{:>6} {:>8} {:>8} {:>8} {:>9} {:>9}",
+                "frame", "bad1 %", "bad2 %", "bad2v %", "MAE mm", "density %"
+            );
+            for r in &rows {
+                println!(
+                    "{:>6} {:>8.2} {:>8.2} {:>8.2} {:>9.3} {:>9.1}",
+                    r.frame, r.bad1_pct, r.bad2_pct, r.bad2_valid_pct, r.mae_mm, r.density_pct
+                );
+            }
+            let summary = misslam::eval_cli::summary(&rows);
+            for (k, v) in &summary {
+                println!("{k:<22} {v:.4}");
+            }
+            if let Some(path) = out {
+                let json = serde_json::json!({ "frames": rows, "eval": summary });
+                std::fs::write(&path, serde_json::to_string_pretty(&json)?)
                     .with_context(|| format!("writing {}", path.display()))?;
             }
             Ok(())

@@ -175,3 +175,54 @@ inputs = { pose = "src.pose_gt", pose_gt = "src.pose_gt" }
     }
     assert_eq!(eval["depth.density_pct"].as_f64(), Some(100.0));
 }
+
+#[test]
+fn eval_depth_command_scores_a_known_perturbation_exactly() {
+    let data = common::tmp_dir("eval-cli-data");
+    let params: toml::Table =
+        toml::from_str("frames = 2\nwidth = 96\nheight = 72\nfocal_px = 105.0\nnoise_sigma = 0.0")
+            .unwrap();
+    misslam::phantom_export::export(&params, 1, &data).unwrap();
+    // Frame 0: every depth 1 mm too far. Frame 1: exact, but the left half missing.
+    let est = common::tmp_dir("eval-cli-est");
+    let mut gt0 = misslam::framework::pfm::read_pfm(&data.join("depth_gt/0.pfm")).unwrap();
+    gt0.data.iter_mut().for_each(|z| *z += 1.0);
+    misslam::framework::pfm::write_pfm(&est.join("0.pfm"), &gt0).unwrap();
+    let mut gt1 = misslam::framework::pfm::read_pfm(&data.join("depth_gt/1.pfm")).unwrap();
+    let w = gt1.width as usize;
+    gt1.data
+        .iter_mut()
+        .enumerate()
+        .filter(|(i, _)| i % w < w / 2)
+        .for_each(|(_, z)| *z = f32::NAN);
+    misslam::framework::pfm::write_pfm(&est.join("1.pfm"), &gt1).unwrap();
+
+    let rows = misslam::eval_cli::eval_depth(
+        &est,
+        &data,
+        misslam_source_stereo_folder::depth_gt::DepthGtFormat::Pfm,
+        &misslam_eval_depth::Params::default(),
+    )
+    .unwrap();
+    assert_eq!(rows.len(), 2);
+    assert!((rows[0].mae_mm - 1.0).abs() < 1e-4, "{}", rows[0].mae_mm);
+    assert_eq!(rows[0].density_pct, 100.0);
+    assert_eq!(
+        (rows[1].mae_mm, rows[1].density_pct, rows[1].bad2_pct),
+        (0.0, 50.0, 50.0)
+    );
+    let summary = misslam::eval_cli::summary(&rows);
+    assert!((summary["depth.mae_mm"] - 0.5).abs() < 1e-4);
+    assert_eq!(summary["depth.density_pct"], 75.0);
+
+    // A frame beyond the dataset is an error naming the file.
+    misslam::framework::pfm::write_pfm(&est.join("7.pfm"), &gt1).unwrap();
+    let e = misslam::eval_cli::eval_depth(
+        &est,
+        &data,
+        misslam_source_stereo_folder::depth_gt::DepthGtFormat::Pfm,
+        &misslam_eval_depth::Params::default(),
+    )
+    .unwrap_err();
+    assert!(e.contains("7.pfm: frame 7 is past the end"), "{e}");
+}

@@ -1,0 +1,106 @@
+//! `misslam eval depth`: scores a folder of estimated depth maps (`<frame>.pfm`, mm, named by
+//! frame index as `sink.files` writes them) against the ground truth of a dataset folder, with
+//! the same scoring as the `eval.depth` node.
+
+use std::path::Path;
+
+use misslam_eval_depth::{score, DepthScores, Params as EvalParams};
+use misslam_framework::{pfm, DepthMap};
+use misslam_source_stereo_folder::depth_gt::DepthGtFormat;
+use misslam_source_stereo_folder::{Params as FolderParams, StereoFolder};
+use serde::Serialize;
+
+/// Scores of one frame.
+#[derive(Debug, Serialize)]
+pub struct FrameRow {
+    /// Frame index (position in the dataset's sorted pairs).
+    pub frame: u64,
+    /// The dataset's file number of that frame.
+    pub file_number: u64,
+    /// % bad at 1 px.
+    pub bad1_pct: f64,
+    /// % bad at 2 px.
+    pub bad2_pct: f64,
+    /// % bad at 2 px over estimated pixels.
+    pub bad2_valid_pct: f64,
+    /// Mean absolute depth error, mm.
+    pub mae_mm: f64,
+    /// % of GT pixels estimated.
+    pub density_pct: f64,
+}
+
+/// Scores every `<k>.pfm` in `est_dir` against frame k of `dataset`.
+pub fn eval_depth(
+    est_dir: &Path,
+    dataset: &Path,
+    gt_format: DepthGtFormat,
+    params: &EvalParams,
+) -> Result<Vec<FrameRow>, String> {
+    if gt_format == DepthGtFormat::None {
+        return Err("--gt-format must be pfm or colonsyn_rgb".into());
+    }
+    let folder = StereoFolder::open(
+        FolderParams {
+            path: dataset.to_owned(),
+            depth_gt: gt_format,
+            ..FolderParams::default()
+        },
+        dataset.to_owned(),
+    )?;
+    let mut files: Vec<(u64, std::path::PathBuf)> = std::fs::read_dir(est_dir)
+        .map_err(|e| format!("{}: {e}", est_dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "pfm"))
+        .filter_map(|p| {
+            p.file_stem()?
+                .to_str()?
+                .parse::<u64>()
+                .ok()
+                .map(|k| (k, p.clone()))
+        })
+        .collect();
+    files.sort();
+    if files.is_empty() {
+        return Err(format!("{} holds no <frame>.pfm files", est_dir.display()));
+    }
+    let calib = *folder.calib();
+    let mut rows = Vec::new();
+    for (k, path) in files {
+        let gt = folder.read_depth_gt(k as usize)?.ok_or_else(|| {
+            format!(
+                "{}: frame {k} is past the end of {}",
+                path.display(),
+                dataset.display()
+            )
+        })?;
+        let map = pfm::read_pfm(&path).map_err(|e| e.to_string())?;
+        let est = DepthMap { map, calib };
+        let s: DepthScores =
+            score(&est, &gt, params).map_err(|e| format!("{}: {e}", path.display()))?;
+        rows.push(FrameRow {
+            frame: k,
+            file_number: folder.files(k as usize).map_or(k, |f| f.number),
+            bad1_pct: s.bad1_pct,
+            bad2_pct: s.bad2_pct,
+            bad2_valid_pct: s.bad2_valid_pct,
+            mae_mm: s.mae_mm,
+            density_pct: s.density_pct,
+        });
+    }
+    Ok(rows)
+}
+
+/// Means over frames under the `depth.*` keys (frames with nothing to score left out).
+pub fn summary(rows: &[FrameRow]) -> std::collections::BTreeMap<String, f64> {
+    let mut means = misslam_framework::metrics::FrameMeans::default();
+    for r in rows {
+        means.add([
+            ("depth.bad1_pct".to_owned(), r.bad1_pct),
+            ("depth.bad2_pct".to_owned(), r.bad2_pct),
+            ("depth.bad2_valid_pct".to_owned(), r.bad2_valid_pct),
+            ("depth.mae_mm".to_owned(), r.mae_mm),
+            ("depth.density_pct".to_owned(), r.density_pct),
+        ]);
+    }
+    means.means().map(|(k, v)| (k.to_owned(), v)).collect()
+}
