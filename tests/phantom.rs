@@ -226,3 +226,58 @@ fn eval_depth_command_scores_a_known_perturbation_exactly() {
     .unwrap_err();
     assert!(e.contains("7.pfm: frame 7 is past the end"), "{e}");
 }
+
+#[test]
+fn template_meshes_render_the_same_from_obj_ply_and_glb() {
+    let Some(data) = common::shared_data() else {
+        println!("skipped: ../shared/data is absent");
+        return;
+    };
+    let obj = data.join("heart/heart.obj");
+    let m = misslam_source_phantom::mesh_input::read_mesh(&obj).unwrap();
+    let dir = common::tmp_dir("template-formats");
+    let g = misslam_sink_files::mesh_io::Geometry {
+        positions: &m.vertices,
+        normals: None,
+        colors: None,
+        triangles: &m.triangles,
+    };
+    misslam_sink_files::mesh_io::write_ply(&dir.join("heart.ply"), &g).unwrap();
+    misslam_sink_files::mesh_io::write_glb(&dir.join("heart.glb"), &g).unwrap();
+    let render = |mesh: std::path::PathBuf| {
+        let p = misslam_source_phantom::Params {
+            mesh: Some(mesh),
+            width: 96,
+            height: 72,
+            focal_px: 105.0,
+            distance_mm: 150.0,
+            noise_sigma: 0.0,
+            ..Default::default()
+        };
+        misslam_source_phantom::Phantom::new(p, 0)
+            .unwrap()
+            .render(0)
+            .unwrap()
+            .depth
+            .map
+            .data
+    };
+    let (a, b, c) = (
+        render(obj),
+        render(dir.join("heart.ply")),
+        render(dir.join("heart.glb")),
+    );
+    assert!(
+        a.iter().filter(|z| z.is_finite()).count() > 1000,
+        "the heart is in view"
+    );
+    for other in [&b, &c] {
+        for (x, y) in a.iter().zip(other.iter()) {
+            // glb stores metres in f32: a few micrometres of rounding.
+            assert!(
+                (x.is_nan() && y.is_nan()) || (x - y).abs() < 1e-2,
+                "{x} vs {y}"
+            );
+        }
+    }
+}

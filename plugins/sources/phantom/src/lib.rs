@@ -33,7 +33,7 @@ use scene::{Motion, Scene, Trajectory};
 pub struct Params {
     /// Organ: "heart", "liver", "kidney" or "stomach" (ignored when `mesh` is set).
     pub scene: Scene,
-    /// A template surface to render instead of a procedural organ (Wavefront OBJ), e.g.
+    /// A template surface to render instead of a procedural organ (OBJ, PLY in mm; glTF in m), e.g.
     /// `../shared/data/heart/heart.obj`; its bounding-box centre is placed `distance_mm` ahead.
     pub mesh: Option<PathBuf>,
     /// Per-frame vertex positions of `mesh` (`.npy`, frames x vertices x 3, mm), e.g.
@@ -325,7 +325,7 @@ impl Phantom {
                 )
             }
             Some(path) => {
-                let m = mesh_input::read_obj(path)?;
+                let m = mesh_input::read_mesh(path)?;
                 let (vertices, frames) = match &p.vertex_trajectory {
                     None => (m.vertices.clone(), None),
                     Some(tp) => {

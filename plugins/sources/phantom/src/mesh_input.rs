@@ -1,6 +1,8 @@
-//! Reading a template surface and its motion: Wavefront OBJ (`v` and `f` lines; polygons are
-//! fanned into triangles) and NumPy `.npy` arrays of per-frame vertex positions
-//! (frames x vertices x 3, little-endian f64 or f32, C order). Errors name the file and line.
+//! Reading a template surface and its motion: Wavefront OBJ (`v` and `f` lines), PLY (ASCII or
+//! binary little-endian; `x y z` vertices and face lists), glTF 2.0 (`.gltf`/`.glb`, every
+//! triangle primitive of every mesh, metres converted to mm) — polygons are fanned into
+//! triangles — and NumPy `.npy` arrays of per-frame vertex positions (frames x vertices x 3,
+//! little-endian f64 or f32, C order). Errors name the file and line.
 
 use std::path::Path;
 
@@ -11,6 +13,210 @@ pub struct MeshData {
     pub vertices: Vec<[f32; 3]>,
     /// Triangles.
     pub triangles: Vec<[u32; 3]>,
+}
+
+/// Reads a mesh, choosing the format by extension (`obj`, `ply`, `gltf`, `glb`).
+pub fn read_mesh(path: &Path) -> Result<MeshData, String> {
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase);
+    match ext.as_deref() {
+        Some("obj") => read_obj(path),
+        Some("ply") => {
+            let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
+            parse_ply(&bytes).map_err(|e| format!("{}: {e}", path.display()))
+        }
+        Some("gltf" | "glb") => read_gltf(path),
+        _ => Err(format!(
+            "{}: unknown mesh format (expected .obj, .ply, .gltf or .glb)",
+            path.display()
+        )),
+    }
+}
+
+/// Reads every triangle primitive of a glTF file; positions in metres become mm.
+pub fn read_gltf(path: &Path) -> Result<MeshData, String> {
+    let (doc, buffers, _) = gltf::import(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let mut vertices = Vec::new();
+    let mut triangles = Vec::new();
+    for mesh in doc.meshes() {
+        for prim in mesh.primitives() {
+            if prim.mode() != gltf::mesh::Mode::Triangles {
+                continue;
+            }
+            let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
+            let Some(pos) = reader.read_positions() else {
+                continue;
+            };
+            let base = vertices.len() as u32;
+            vertices.extend(pos.map(|p| p.map(|v| v * 1000.0)));
+            let n = vertices.len() as u32 - base;
+            let idx: Vec<u32> = match reader.read_indices() {
+                Some(i) => i.into_u32().collect(),
+                None => (0..n).collect(),
+            };
+            for t in idx.chunks_exact(3) {
+                if t.iter().any(|&i| i >= n) {
+                    return Err(format!(
+                        "{}: a triangle indexes past its primitive's vertices",
+                        path.display()
+                    ));
+                }
+                triangles.push([base + t[0], base + t[1], base + t[2]]);
+            }
+        }
+    }
+    if triangles.is_empty() {
+        return Err(format!("{}: no triangle meshes", path.display()));
+    }
+    Ok(MeshData {
+        vertices,
+        triangles,
+    })
+}
+
+/// Parses PLY bytes (ASCII or binary little-endian).
+pub fn parse_ply(bytes: &[u8]) -> Result<MeshData, String> {
+    let end = bytes
+        .windows(10)
+        .position(|w| w == b"end_header")
+        .ok_or("no end_header")?;
+    let header = std::str::from_utf8(&bytes[..end]).map_err(|_| "header is not text")?;
+    let mut body = end + 10;
+    while body < bytes.len() && (bytes[body] == b'\r' || bytes[body] == b'\n') {
+        body += 1;
+        if bytes[body - 1] == b'\n' {
+            break;
+        }
+    }
+    let mut binary = false;
+    // (element name, count, properties: (name, type, list index type))
+    let mut elements: Vec<(String, usize, Vec<(String, String, Option<String>)>)> = Vec::new();
+    for line in header.lines().skip(1) {
+        let w: Vec<&str> = line.split_whitespace().collect();
+        match w.as_slice() {
+            ["format", "ascii", ..] => binary = false,
+            ["format", "binary_little_endian", ..] => binary = true,
+            ["format", f, ..] => return Err(format!("unsupported PLY format `{f}`")),
+            ["element", name, count] => elements.push((
+                name.to_string(),
+                count
+                    .parse()
+                    .map_err(|_| format!("bad count in `{line}`"))?,
+                Vec::new(),
+            )),
+            ["property", "list", it, vt, name] => elements
+                .last_mut()
+                .ok_or("property before element")?
+                .2
+                .push((name.to_string(), vt.to_string(), Some(it.to_string()))),
+            ["property", t, name] => elements
+                .last_mut()
+                .ok_or("property before element")?
+                .2
+                .push((name.to_string(), t.to_string(), None)),
+            _ => {}
+        }
+    }
+    let size = |t: &str| -> Result<usize, String> {
+        Ok(match t {
+            "char" | "uchar" | "int8" | "uint8" => 1,
+            "short" | "ushort" | "int16" | "uint16" => 2,
+            "int" | "uint" | "int32" | "uint32" | "float" | "float32" => 4,
+            "double" | "float64" => 8,
+            other => return Err(format!("unknown PLY type `{other}`")),
+        })
+    };
+    let read_bin = |b: &[u8], t: &str| -> f64 {
+        match t {
+            "char" | "int8" => b[0] as i8 as f64,
+            "uchar" | "uint8" => b[0] as f64,
+            "short" | "int16" => i16::from_le_bytes([b[0], b[1]]) as f64,
+            "ushort" | "uint16" => u16::from_le_bytes([b[0], b[1]]) as f64,
+            "int" | "int32" => i32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64,
+            "uint" | "uint32" => u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64,
+            "float" | "float32" => f32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64,
+            _ => f64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]),
+        }
+    };
+    let mut vertices = Vec::new();
+    let mut triangles = Vec::new();
+    let mut pos = body;
+    let text = if binary {
+        String::new()
+    } else {
+        String::from_utf8_lossy(&bytes[body..]).into_owned()
+    };
+    let mut tokens = text.split_whitespace();
+    let mut next_value = |t: &str, pos: &mut usize| -> Result<f64, String> {
+        if binary {
+            let n = size(t)?;
+            let b = bytes.get(*pos..*pos + n).ok_or("truncated PLY data")?;
+            *pos += n;
+            Ok(read_bin(b, t))
+        } else {
+            tokens
+                .next()
+                .ok_or("truncated PLY data")?
+                .parse::<f64>()
+                .map_err(|_| "bad PLY number".to_string())
+        }
+    };
+    for (name, count, props) in &elements {
+        for _ in 0..*count {
+            let mut xyz = [f32::NAN; 3];
+            let mut face: Vec<u32> = Vec::new();
+            for (pname, t, list) in props {
+                match list {
+                    Some(it) => {
+                        let n = next_value(it, &mut pos)? as usize;
+                        for _ in 0..n {
+                            let v = next_value(t, &mut pos)?;
+                            if name == "face" {
+                                face.push(v as u32);
+                            }
+                        }
+                    }
+                    None => {
+                        let v = next_value(t, &mut pos)?;
+                        match pname.as_str() {
+                            "x" => xyz[0] = v as f32,
+                            "y" => xyz[1] = v as f32,
+                            "z" => xyz[2] = v as f32,
+                            _ => {}
+                        }
+                    }
+                }
+            }
+            if name == "vertex" {
+                if xyz.iter().any(|v| !v.is_finite()) {
+                    return Err(format!("vertex {} has no finite x, y, z", vertices.len()));
+                }
+                vertices.push(xyz);
+            } else if name == "face" && face.len() >= 3 {
+                for k in 1..face.len() - 1 {
+                    triangles.push([face[0], face[k], face[k + 1]]);
+                }
+            }
+        }
+    }
+    if let Some(t) = triangles
+        .iter()
+        .find(|t| t.iter().any(|&i| i as usize >= vertices.len()))
+    {
+        return Err(format!(
+            "face {t:?} indexes past the {} vertices",
+            vertices.len()
+        ));
+    }
+    if triangles.is_empty() {
+        return Err("no faces".into());
+    }
+    Ok(MeshData {
+        vertices,
+        triangles,
+    })
 }
 
 /// Reads an OBJ file.
@@ -186,6 +392,31 @@ mod tests {
             parse_obj("v 0 0 0\nv 1 0 0\nv 1 1 0\nf 1 2 9\n").unwrap_err(),
             "line 4: face index 9 is outside the 3 vertices"
         );
+    }
+
+    #[test]
+    fn ply_ascii_and_binary() {
+        let ascii = b"ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n";
+        let m = parse_ply(ascii).unwrap();
+        assert_eq!(m.vertices.len(), 4);
+        assert_eq!(m.triangles, vec![[0, 1, 2], [0, 2, 3]]);
+        let mut bin = b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty double x\nproperty double y\nproperty double z\nproperty uchar red\nelement face 1\nproperty list uchar uint vertex_indices\nend_header\n".to_vec();
+        for v in [[0.0f64, 0.0, 5.0], [1.0, 0.0, 5.0], [0.0, 1.0, 5.0]] {
+            for c in v {
+                bin.extend(c.to_le_bytes());
+            }
+            bin.push(200);
+        }
+        bin.push(3);
+        for i in [0u32, 1, 2] {
+            bin.extend(i.to_le_bytes());
+        }
+        let m = parse_ply(&bin).unwrap();
+        assert_eq!(m.vertices[1], [1.0, 0.0, 5.0]);
+        assert_eq!(m.triangles, vec![[0, 1, 2]]);
+        assert!(parse_ply(&bin[..bin.len() - 2])
+            .unwrap_err()
+            .contains("truncated"));
     }
 
     #[test]
