@@ -76,6 +76,11 @@ pub fn read_gltf(path: &Path) -> Result<MeshData, String> {
     })
 }
 
+/// A PLY property: name, value type, and the count type when it is a list.
+type PlyProperty = (String, String, Option<String>);
+/// A PLY element: name, count, properties.
+type PlyElement = (String, usize, Vec<PlyProperty>);
+
 /// Parses PLY bytes (ASCII or binary little-endian).
 pub fn parse_ply(bytes: &[u8]) -> Result<MeshData, String> {
     let end = bytes
@@ -91,8 +96,7 @@ pub fn parse_ply(bytes: &[u8]) -> Result<MeshData, String> {
         }
     }
     let mut binary = false;
-    // (element name, count, properties: (name, type, list index type))
-    let mut elements: Vec<(String, usize, Vec<(String, String, Option<String>)>)> = Vec::new();
+    let mut elements: Vec<PlyElement> = Vec::new();
     for line in header.lines().skip(1) {
         let w: Vec<&str> = line.split_whitespace().collect();
         match w.as_slice() {
