@@ -19,6 +19,7 @@ pub const BUILTIN: &[RegisterFn] = &[
     misslam_source_phantom::register,
     misslam_sink_files::register,
     misslam_image_gray::register,
+    misslam_depth_sgm::register,
     misslam_eval_depth::register,
     misslam_eval_recon::register,
     misslam_eval_tracking::register,
@@ -54,6 +55,7 @@ mod tests {
         assert_eq!(
             ids,
             [
+                "depth.sgm",
                 "eval.depth",
                 "eval.recon",
                 "eval.tracking",

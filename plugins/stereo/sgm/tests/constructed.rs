@@ -1,0 +1,192 @@
+//! SGM on constructed cases with exact expectations.
+#![allow(clippy::unwrap_used)] // test code: a failed unwrap is the test failing
+
+use misslam_depth_sgm::sgm::{
+    census, median3, path_step, remove_speckles, sgm, Scratch, SgmParams,
+};
+
+/// Deterministic random dots.
+fn dots(w: usize, h: usize, seed: u64) -> Vec<u8> {
+    let mut s = seed;
+    (0..w * h)
+        .map(|_| {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 56) as u8
+        })
+        .collect()
+}
+
+/// Right image of a scene whose left pixel x shows what the right sees at x - disp(x, y).
+fn shift(
+    left: &[u8],
+    w: usize,
+    h: usize,
+    disp: impl Fn(usize, usize) -> usize,
+    fill: &[u8],
+) -> Vec<u8> {
+    let mut right = fill.to_vec();
+    // Paint far to near so the nearer surface wins.
+    let mut order: Vec<(usize, usize)> = (0..h).flat_map(|y| (0..w).map(move |x| (x, y))).collect();
+    order.sort_by_key(|&(x, y)| disp(x, y));
+    for (x, y) in order {
+        let d = disp(x, y);
+        if x >= d {
+            right[y * w + x - d] = left[y * w + x];
+        }
+    }
+    right
+}
+
+#[test]
+fn census_bits_follow_the_window_order() {
+    // 3x3 window around the centre (value 5): neighbours row by row, bit set when darker.
+    let img = [1, 9, 5, 5, 5, 2, 7, 0, 6];
+    let mut out = Vec::new();
+    census(&img, 3, 3, 3, 3, &mut out);
+    // Order: (-1,-1)=1 darker, (0,-1)=9, (1,-1)=5, (-1,0)=5, (1,0)=2 darker, (-1,1)=7, (0,1)=0 darker, (1,1)=6.
+    assert_eq!(out[4], 0b1000_1010);
+}
+
+#[test]
+fn path_step_is_the_recurrence() {
+    let cost = [4u8, 1, 7, 3];
+    let prev = [10u16, 2, 9, 30];
+    let mut out = [0u16; 4];
+    path_step(&cost, &prev, 3, 20, &mut out);
+    // min(prev) = 2. d0: min(10, 2+3, 22) - 2 = 3 -> 7; d1: min(2, ...) - 2 = 0 -> 1;
+    // d2: min(9, 2+3, 30+3, 22) - 2 = 3 -> 10; d3: min(30, 9+3, 22) - 2 = 10 -> 13.
+    assert_eq!(out, [7, 1, 10, 13]);
+}
+
+#[test]
+fn constant_disparity_is_recovered_exactly() {
+    let (w, h) = (96, 64);
+    let left = dots(w, h, 3);
+    let right = shift(&left, w, h, |_, _| 7, &dots(w, h, 99));
+    let p = SgmParams {
+        num_disparities: 16,
+        census_width: 5,
+        census_height: 5,
+        ..SgmParams::default()
+    };
+    let d = sgm(&left, &right, w, h, None, &p, &mut Scratch::default()).unwrap();
+    let inner: Vec<f32> = (4..h - 4)
+        .flat_map(|y| (20..w - 4).map(move |x| (x, y)))
+        .map(|(x, y)| d[y * w + x])
+        .collect();
+    let exact = inner.iter().filter(|v| (**v - 7.0).abs() < 0.05).count();
+    assert!(
+        exact as f64 > 0.98 * inner.len() as f64,
+        "{exact} of {}",
+        inner.len()
+    );
+}
+
+#[test]
+fn left_right_check_invalidates_the_occluded_strip() {
+    let (w, h) = (120, 60);
+    let left = dots(w, h, 5);
+    // Background at disparity 4, a square in front at 14 (x 50..80, y 15..45).
+    let fg = |x: usize, y: usize| (50..80).contains(&x) && (15..45).contains(&y);
+    let right = shift(
+        &left,
+        w,
+        h,
+        |x, y| if fg(x, y) { 14 } else { 4 },
+        &dots(w, h, 77),
+    );
+    let p = SgmParams {
+        num_disparities: 24,
+        census_width: 5,
+        census_height: 5,
+        speckle_window: 0,
+        median: false,
+        ..SgmParams::default()
+    };
+    let d = sgm(&left, &right, w, h, None, &p, &mut Scratch::default()).unwrap();
+    // Left of the square, background pixels x in 40..50 are hidden in the right image (the
+    // square covers right-image columns 36..66): they must not carry a disparity.
+    let y = 30;
+    let occluded = (41..49).filter(|&x| d[y * w + x].is_finite()).count();
+    assert!(
+        occluded <= 1,
+        "{occluded} occluded pixels kept: {:?}",
+        &d[y * w + 38..y * w + 52]
+    );
+    assert!(
+        (d[y * w + 65] - 14.0).abs() < 0.2,
+        "square: {}",
+        d[y * w + 65]
+    );
+    assert!(
+        (d[y * w + 100] - 4.0).abs() < 0.2,
+        "background: {}",
+        d[y * w + 100]
+    );
+    // Without the check the strip is filled (wrongly).
+    let p = SgmParams {
+        lr_check: false,
+        ..p
+    };
+    let d = sgm(&left, &right, w, h, None, &p, &mut Scratch::default()).unwrap();
+    assert!((41..49).filter(|&x| d[y * w + x].is_finite()).count() >= 6);
+}
+
+#[test]
+fn speckles_and_median() {
+    let (w, h) = (6, 5);
+    let mut d = vec![5.0f32; w * h];
+    d[2 * w + 2] = 20.0; // an isolated pixel of another depth
+    d[0] = f32::NAN;
+    remove_speckles(&mut d, w, h, 2, 1.0);
+    assert!(d[2 * w + 2].is_nan(), "a region of one pixel is removed");
+    assert_eq!(d.iter().filter(|v| v.is_finite()).count(), w * h - 2);
+    let mut m = vec![1.0f32; 9];
+    m[4] = 9.0;
+    m[0] = f32::NAN;
+    let out = median3(&m, 3, 3);
+    assert_eq!(out[4], 1.0, "the outlier goes");
+    assert!(out[0].is_nan(), "invalid stays invalid");
+}
+
+#[test]
+fn masked_pixels_get_no_disparity_and_bad_parameters_are_named() {
+    let (w, h) = (40, 20);
+    let left = dots(w, h, 1);
+    let right = shift(&left, w, h, |_, _| 3, &dots(w, h, 2));
+    let mut mask = vec![1u8; w * h];
+    mask[10 * w + 20] = 0;
+    let p = SgmParams {
+        num_disparities: 8,
+        census_width: 5,
+        census_height: 5,
+        ..SgmParams::default()
+    };
+    let d = sgm(
+        &left,
+        &right,
+        w,
+        h,
+        Some(&mask),
+        &p,
+        &mut Scratch::default(),
+    )
+    .unwrap();
+    assert!(d[10 * w + 20].is_nan());
+    let bad = SgmParams { p2: 5, p1: 10, ..p };
+    assert_eq!(
+        bad.validate().unwrap_err(),
+        "`p2` (5) must exceed `p1` (10)"
+    );
+    let bad = SgmParams {
+        census_width: 11,
+        census_height: 7,
+        ..p
+    };
+    assert!(bad
+        .validate()
+        .unwrap_err()
+        .contains("more than 64 comparisons"));
+}
