@@ -144,17 +144,29 @@ pub fn census(img: &[u8], w: usize, h: usize, cw: usize, ch: usize, out: &mut Ve
 #[inline]
 pub fn path_step(cost: &[u8], prev: &[u16], p1: u16, p2: u16, out: &mut [u16]) {
     let n = cost.len();
+    if n == 0 {
+        return;
+    }
     let min_prev = prev.iter().copied().min().unwrap_or(0);
     let jump = min_prev.saturating_add(p2);
-    for d in 0..n {
-        let mut best = prev[d].min(jump);
-        if d > 0 {
-            best = best.min(prev[d - 1].saturating_add(p1));
-        }
-        if d + 1 < n {
-            best = best.min(prev[d + 1].saturating_add(p1));
-        }
-        out[d] = cost[d] as u16 + (best - min_prev);
+    let edge = |d: usize, other: u16| prev[d].min(jump).min(other.saturating_add(p1));
+    if n == 1 {
+        out[0] = cost[0] as u16 + (prev[0].min(jump) - min_prev);
+        return;
+    }
+    out[0] = cost[0] as u16 + (edge(0, prev[1]) - min_prev);
+    out[n - 1] = cost[n - 1] as u16 + (edge(n - 1, prev[n - 2]) - min_prev);
+    // Interior without branches, so the loop vectorises (saturating u16 adds and mins).
+    for ((o, &c), w) in out[1..n - 1]
+        .iter_mut()
+        .zip(&cost[1..n - 1])
+        .zip(prev.windows(3))
+    {
+        let best = w[1]
+            .min(jump)
+            .min(w[0].saturating_add(p1))
+            .min(w[2].saturating_add(p1));
+        *o = c as u16 + (best - min_prev);
     }
 }
 
