@@ -11,87 +11,8 @@ use misslam_framework::{
     TypedPlugin,
 };
 
-/// Parameters of `depth.sgm`.
-#[derive(Clone, Debug, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
-#[serde(deny_unknown_fields, default)]
-pub struct Params {
-    /// Number of disparities searched, starting at `min_disparity`.
-    pub max_disparity: u32,
-    /// Smallest disparity searched, px.
-    pub min_disparity: i32,
-    /// Census window width (odd).
-    pub census_width: u32,
-    /// Census window height (odd); width x height - 1 must not exceed 64.
-    pub census_height: u32,
-    /// Aggregation paths: 4 or 8.
-    pub paths: u32,
-    /// Penalty for a disparity change of one pixel between neighbours (census cost units, 0..63).
-    pub p1: u16,
-    /// Penalty for larger changes; must exceed `p1`.
-    pub p2: u16,
-    /// Divide P2 by the intensity step along each path (Hirschmueller's edge-aware P2), never below P1 + 1.
-    pub p2_adaptive: bool,
-    /// Uniqueness margin, %: the best aggregated cost must beat the second best (beyond +-1 px) by this much.
-    pub uniqueness_pct: u32,
-    /// Sub-pixel refinement by a parabola through the costs at d-1, d, d+1.
-    pub subpixel: bool,
-    /// Left-right consistency check (right disparities from the same aggregated cost).
-    pub lr_check: bool,
-    /// Largest left-right disagreement kept, px.
-    pub lr_max_diff: f32,
-    /// 3x3 median filter of the valid disparities.
-    pub median: bool,
-    /// Remove connected regions smaller than this many pixels (0: off).
-    pub speckle_window: u32,
-    /// Neighbours within this disparity difference belong to one region, px.
-    pub speckle_range: f32,
-}
-
-impl Default for Params {
-    fn default() -> Self {
-        let s = sgm::SgmParams::default();
-        Params {
-            max_disparity: s.num_disparities,
-            min_disparity: s.min_disparity,
-            census_width: s.census_width,
-            census_height: s.census_height,
-            paths: s.paths,
-            p1: s.p1,
-            p2: s.p2,
-            p2_adaptive: s.p2_adaptive,
-            uniqueness_pct: s.uniqueness_pct,
-            subpixel: s.subpixel,
-            lr_check: s.lr_check,
-            lr_max_diff: s.lr_max_diff,
-            median: s.median,
-            speckle_window: s.speckle_window,
-            speckle_range: s.speckle_range,
-        }
-    }
-}
-
-impl Params {
-    /// The library's parameters.
-    pub fn sgm(&self) -> sgm::SgmParams {
-        sgm::SgmParams {
-            num_disparities: self.max_disparity,
-            min_disparity: self.min_disparity,
-            census_width: self.census_width,
-            census_height: self.census_height,
-            paths: self.paths,
-            p1: self.p1,
-            p2: self.p2,
-            p2_adaptive: self.p2_adaptive,
-            uniqueness_pct: self.uniqueness_pct,
-            subpixel: self.subpixel,
-            lr_check: self.lr_check,
-            lr_max_diff: self.lr_max_diff,
-            median: self.median,
-            speckle_window: self.speckle_window,
-            speckle_range: self.speckle_range,
-        }
-    }
-}
+/// Parameters of `depth.sgm`: those of the library.
+pub use sgm::SgmParams as Params;
 
 /// The node.
 pub struct SgmNode {
@@ -155,8 +76,7 @@ impl Node for SgmNode {
 }
 
 /// Builds the node.
-pub fn build(p: Params, _: &BuildContext) -> Result<SgmNode, BuildError> {
-    let params = p.sgm();
+pub fn build(params: Params, _: &BuildContext) -> Result<SgmNode, BuildError> {
     params.validate().map_err(|m| BuildError::Param {
         key: None,
         path: String::new(),

@@ -8,45 +8,48 @@
 
 use rayon::prelude::*;
 
-/// Parameters (documented on the plugin's `Params`, which maps onto this).
-#[derive(Clone, Copy, Debug, PartialEq)]
+/// Parameters of SGM (and of the `depth.sgm` plugin: `misslam plugins depth.sgm` prints these docs).
+#[derive(
+    Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema,
+)]
+#[serde(deny_unknown_fields, default)]
 pub struct SgmParams {
-    /// Number of disparities searched, from `min_disparity`.
-    pub num_disparities: u32,
-    /// Smallest disparity, px.
+    /// Number of disparities searched, starting at `min_disparity`.
+    pub max_disparity: u32,
+    /// Smallest disparity searched, px.
     pub min_disparity: i32,
     /// Census window width (odd).
     pub census_width: u32,
-    /// Census window height (odd); width x height - 1 <= 64.
+    /// Census window height (odd); width x height - 1 must not exceed 64.
     pub census_height: u32,
-    /// 4 or 8 aggregation paths.
+    /// Aggregation paths: 4 or 8.
     pub paths: u32,
-    /// Penalty of a one-pixel disparity change.
+    /// Penalty for a disparity change of one pixel between neighbours (census cost units, 0..63).
     pub p1: u16,
-    /// Penalty of a larger change.
+    /// Penalty for larger changes; must exceed `p1`.
     pub p2: u16,
-    /// Divide P2 by the intensity step along the path (never below P1 + 1).
+    /// Divide P2 by the intensity step along each path (Hirschmueller's edge-aware P2), never below P1 + 1.
     pub p2_adaptive: bool,
-    /// The best cost must beat the second best (beyond +-1 px) by this many percent.
+    /// Uniqueness margin, %: the best aggregated cost must beat the second best (beyond +-1 px) by this much.
     pub uniqueness_pct: u32,
-    /// Sub-pixel parabola fit.
+    /// Sub-pixel refinement by a parabola through the costs at d-1, d, d+1.
     pub subpixel: bool,
-    /// Left-right consistency check.
+    /// Left-right consistency check (right disparities from the same aggregated cost).
     pub lr_check: bool,
-    /// Largest left-right difference accepted, px.
+    /// Largest left-right disagreement kept, px.
     pub lr_max_diff: f32,
-    /// 3x3 median of valid disparities.
+    /// 3x3 median filter of the valid disparities.
     pub median: bool,
-    /// Connected regions of fewer pixels than this are removed (0: off).
+    /// Remove connected regions smaller than this many pixels (0: off).
     pub speckle_window: u32,
-    /// Neighbours within this disparity difference are in one region, px.
+    /// Neighbours within this disparity difference belong to one region, px.
     pub speckle_range: f32,
 }
 
 impl Default for SgmParams {
     fn default() -> Self {
         SgmParams {
-            num_disparities: 64,
+            max_disparity: 64,
             min_disparity: 0,
             census_width: 9,
             census_height: 7,
@@ -68,10 +71,10 @@ impl Default for SgmParams {
 impl SgmParams {
     /// Checks the parameters; the message names the field.
     pub fn validate(&self) -> Result<(), String> {
-        if self.num_disparities < 2 || self.num_disparities > 1024 {
+        if self.max_disparity < 2 || self.max_disparity > 1024 {
             return Err(format!(
-                "`num_disparities` must be in 2..=1024, got {}",
-                self.num_disparities
+                "`max_disparity` must be in 2..=1024, got {}",
+                self.max_disparity
             ));
         }
         if self.census_width.is_multiple_of(2)
@@ -185,7 +188,7 @@ pub fn sgm(
     if left.len() != w * h || right.len() != w * h {
         return Err(format!("images must be {w}x{h} gray"));
     }
-    let nd = p.num_disparities as usize;
+    let nd = p.max_disparity as usize;
     let dmin = p.min_disparity as isize;
     census(
         left,

@@ -66,7 +66,7 @@ fn constant_disparity_is_recovered_exactly() {
     let left = dots(w, h, 3);
     let right = shift(&left, w, h, |_, _| 7, &dots(w, h, 99));
     let p = SgmParams {
-        num_disparities: 16,
+        max_disparity: 16,
         census_width: 5,
         census_height: 5,
         ..SgmParams::default()
@@ -98,7 +98,7 @@ fn left_right_check_invalidates_the_occluded_strip() {
         &dots(w, h, 77),
     );
     let p = SgmParams {
-        num_disparities: 24,
+        max_disparity: 24,
         census_width: 5,
         census_height: 5,
         speckle_window: 0,
@@ -159,7 +159,7 @@ fn masked_pixels_get_no_disparity_and_bad_parameters_are_named() {
     let mut mask = vec![1u8; w * h];
     mask[10 * w + 20] = 0;
     let p = SgmParams {
-        num_disparities: 8,
+        max_disparity: 8,
         census_width: 5,
         census_height: 5,
         ..SgmParams::default()
