@@ -12,6 +12,8 @@
 pub mod mesh_input;
 pub mod render;
 pub mod scene;
+mod sensor;
+mod surface;
 pub mod texture;
 
 use std::path::PathBuf;
@@ -26,6 +28,8 @@ use misslam_framework::{
 
 use render::{Raster, View};
 use scene::{Motion, Scene, Trajectory};
+use sensor::{frame_seed, gauss_table, quantize, to_srgb8, Noise, SplitMix, GAMMA_LUT};
+use surface::{bounds, grid_normals, mesh_normals, Albedo, Atlas, ATLAS_MM};
 
 /// Parameters of `source.phantom`.
 #[derive(Clone, Debug, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
@@ -756,220 +760,6 @@ impl Phantom {
     /// Albedo (linear RGB) at a rest point with its rest normal.
     pub fn albedo_at(&self, rest: [f32; 3], normal: [f32; 3]) -> [f32; 3] {
         self.albedo.sample(rest, normal)
-    }
-}
-
-/// How albedo is looked up: on the procedural organ's parameter plane, or triplanar on a
-/// template mesh (three planar atlases blended by the rest normal).
-enum Albedo {
-    Planar(Atlas),
-    Triplanar { yz: Atlas, xz: Atlas, xy: Atlas },
-}
-
-impl Albedo {
-    fn sample(&self, p: [f32; 3], n: [f32; 3]) -> [f32; 3] {
-        match self {
-            Albedo::Planar(a) => a.sample(p[0], p[1]),
-            Albedo::Triplanar { yz, xz, xy } => {
-                let w = n.map(|c| c.abs().powi(4));
-                let sum = (w[0] + w[1] + w[2]).max(1e-12);
-                let (a, b, c) = (
-                    yz.sample(p[1], p[2]),
-                    xz.sample(p[0], p[2]),
-                    xy.sample(p[0], p[1]),
-                );
-                [0, 1, 2].map(|k| (w[0] * a[k] + w[1] * b[k] + w[2] * c[k]) / sum)
-            }
-        }
-    }
-}
-
-fn bounds(v: &[[f32; 3]]) -> ([f32; 3], [f32; 3]) {
-    let mut lo = [f32::INFINITY; 3];
-    let mut hi = [f32::NEG_INFINITY; 3];
-    for p in v {
-        for k in 0..3 {
-            lo[k] = lo[k].min(p[k]);
-            hi[k] = hi[k].max(p[k]);
-        }
-    }
-    (lo, hi)
-}
-
-/// Area-weighted vertex normals of a triangle mesh, oriented toward the scope (-z) on average.
-fn mesh_normals(v: &[[f32; 3]], triangles: &[[u32; 3]]) -> Vec<[f32; 3]> {
-    let mut acc = vec![Vector3::<f32>::zeros(); v.len()];
-    for t in triangles {
-        let [a, b, c] = t.map(|i| Vector3::from(v[i as usize]));
-        let n = (b - a).cross(&(c - a));
-        for &i in t {
-            acc[i as usize] += n;
-        }
-    }
-    // One orientation for the whole surface: the one facing the scope for most of it.
-    let facing: f32 = acc.iter().map(|n| -n.z).sum();
-    let sign = if facing < 0.0 { -1.0 } else { 1.0 };
-    acc.into_iter()
-        .map(|n| {
-            let n = (sign * n)
-                .try_normalize(1e-12)
-                .unwrap_or(Vector3::new(0.0, 0.0, -1.0));
-            [n.x, n.y, n.z]
-        })
-        .collect()
-}
-
-/// Texel size of the baked albedo, mm (about 1 px at the nearest tissue).
-const ATLAS_MM: f32 = 0.1;
-
-/// The albedo baked over the tissue patch's parameter plane, sampled bilinearly.
-struct Atlas {
-    origin: [f32; 2],
-    step: f32,
-    nx: usize,
-    ny: usize,
-    texels: Vec<[f32; 3]>,
-}
-
-impl Atlas {
-    fn bake(lo: [f32; 2], hi: [f32; 2], step: f32, f: impl Fn(f32, f32) -> [f32; 3]) -> Self {
-        let nx = ((hi[0] - lo[0]) / step).ceil() as usize + 3;
-        let ny = ((hi[1] - lo[1]) / step).ceil() as usize + 3;
-        let origin = [lo[0] - step, lo[1] - step];
-        let mut texels = Vec::with_capacity(nx * ny);
-        for j in 0..ny {
-            for i in 0..nx {
-                texels.push(f(origin[0] + i as f32 * step, origin[1] + j as f32 * step));
-            }
-        }
-        Atlas {
-            origin,
-            step,
-            nx,
-            ny,
-            texels,
-        }
-    }
-
-    fn sample(&self, x: f32, y: f32) -> [f32; 3] {
-        let fx = ((x - self.origin[0]) / self.step).clamp(0.0, (self.nx - 2) as f32);
-        let fy = ((y - self.origin[1]) / self.step).clamp(0.0, (self.ny - 2) as f32);
-        let (i, j) = (fx as usize, fy as usize);
-        let (tx, ty) = (fx - i as f32, fy - j as f32);
-        let t = |i: usize, j: usize| self.texels[j * self.nx + i];
-        let (a, b, c, d) = (t(i, j), t(i + 1, j), t(i, j + 1), t(i + 1, j + 1));
-        let mut out = [0.0; 3];
-        for k in 0..3 {
-            let top = a[k] + (b[k] - a[k]) * tx;
-            let bottom = c[k] + (d[k] - c[k]) * tx;
-            out[k] = top + (bottom - top) * ty;
-        }
-        out
-    }
-}
-
-fn to_srgb8(c: f32) -> u8 {
-    (255.0 * c.clamp(0.0, 1.0).powf(1.0 / 2.2)).round() as u8
-}
-
-/// Entries of the linear-to-sRGB table (fine enough that no 8-bit level is skipped above 1 %).
-const GAMMA_LUT: usize = 16384;
-
-fn quantize(v: f32, sigma: f32, noise: &mut Noise, rng: &mut SplitMix) -> u8 {
-    let noisy = if sigma > 0.0 {
-        v + sigma * noise.next(rng)
-    } else {
-        v
-    };
-    noisy.round().clamp(0.0, 255.0) as u8
-}
-
-/// Entries of the table of standard normal samples the sensor noise draws from.
-const GAUSS_TABLE: usize = 1 << 16;
-
-/// A table of standard normal samples (Box-Muller from a fixed seed): drawing noise is then one
-/// table read per value, four values per random number.
-fn gauss_table() -> Vec<f32> {
-    let mut rng = SplitMix(0x6e6f_6973_6521);
-    let mut t = Vec::with_capacity(GAUSS_TABLE);
-    while t.len() < GAUSS_TABLE {
-        let (u1, u2) = (rng.uniform(), rng.uniform());
-        let radius = (-2.0 * u1.ln()).sqrt();
-        let (s, c) = (std::f32::consts::TAU * u2).sin_cos();
-        t.push(radius * c);
-        t.push(radius * s);
-    }
-    t
-}
-
-/// Standard normal values drawn from [`gauss_table`].
-struct Noise<'a> {
-    table: &'a [f32],
-    bits: u64,
-    left: u32,
-}
-
-impl<'a> Noise<'a> {
-    fn new(table: &'a [f32]) -> Self {
-        Noise {
-            table,
-            bits: 0,
-            left: 0,
-        }
-    }
-
-    fn next(&mut self, rng: &mut SplitMix) -> f32 {
-        if self.left == 0 {
-            self.bits = rng.next_u64();
-            self.left = 4;
-        }
-        let i = (self.bits & 0xffff) as usize;
-        self.bits >>= 16;
-        self.left -= 1;
-        self.table[i]
-    }
-}
-
-/// Per-vertex normals of a grid mesh from central differences (pointing toward the scope).
-fn grid_normals(v: &[[f32; 3]], (nx, ny): (usize, usize)) -> Vec<[f32; 3]> {
-    let at = |i: usize, j: usize| Vector3::from(v[j * nx + i]);
-    let mut out = Vec::with_capacity(v.len());
-    for j in 0..ny {
-        for i in 0..nx {
-            let du = at((i + 1).min(nx - 1), j) - at(i.saturating_sub(1), j);
-            let dv = at(i, (j + 1).min(ny - 1)) - at(i, j.saturating_sub(1));
-            // x right, y down: du x dv points away from the scope (+z); flip it.
-            let n = -du.cross(&dv);
-            let n = n
-                .try_normalize(1e-12)
-                .unwrap_or(Vector3::new(0.0, 0.0, -1.0));
-            out.push([n.x, n.y, n.z]);
-        }
-    }
-    out
-}
-
-fn frame_seed(seed: u64, frame: u64, view: u64) -> u64 {
-    let mut s = SplitMix(
-        seed ^ frame.wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ view.wrapping_mul(0xbf58_476d_1ce4_e5b9),
-    );
-    s.next_u64()
-}
-
-/// SplitMix64: small, fast, deterministic.
-struct SplitMix(u64);
-
-impl SplitMix {
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-
-    fn uniform(&mut self) -> f32 {
-        ((self.next_u64() >> 40) as f32 + 0.5) / (1u64 << 24) as f32
     }
 }
 
