@@ -284,9 +284,12 @@ fn template_meshes_render_the_same_from_obj_ply_and_glb() {
 
 #[test]
 fn sgm_on_the_phantom_regression() {
-    // graphs/depth_sgm_phantom.toml at 320x240: measured 0.30 % valid-only bad-2 at 91.9 %
-    // density noise-free, 0.44 % at 91.1 % with sensor noise (sigma 2 levels).
-    for (noise, max_bad2_valid, min_density) in [(0.0, 1.0, 88.0), (2.0, 1.5, 86.0)] {
+    // graphs/depth_sgm_phantom.toml at 320x240: measured 0.013 % valid-only bad-2 at 92.1 %
+    // density and 0.68 mm MAE noise-free; 0.16 % at 91.5 % and 2.7 mm with sensor noise
+    // (sigma 2 levels). The MAE is carried by a few gross outliers in the left image band.
+    for (noise, max_bad2_valid, min_density, max_mae) in
+        [(0.0, 0.2, 90.0, 1.5), (2.0, 0.6, 89.0, 5.0)]
+    {
         let sets: Vec<String> = [
             "src.width=320",
             "src.height=240",

@@ -206,10 +206,14 @@ pub fn sgm(
         p.census_height as usize,
         &mut s.census_r,
     );
-    // Matching cost: Hamming distance; a right pixel outside the image costs the maximum.
-    let worst = (p.census_width * p.census_height - 1) as u8;
+    // Matching cost: Hamming distance. A match outside the right image is unknown, not bad: it
+    // costs half the maximum, so it neither attracts nor repels, the paths carry the disparity in
+    // from where it can be measured, and the left-right check then rejects the pixel (its partner
+    // is outside the image). Scoring it as the maximum instead pulls the left band towards zero
+    // disparity, which the LR check cannot catch.
+    let unknown = ((p.census_width * p.census_height - 1) / 2) as u8;
     s.cost.clear();
-    s.cost.resize(w * h * nd, worst);
+    s.cost.resize(w * h * nd, unknown);
     let (cl, cr) = (&s.census_l, &s.census_r);
     s.cost
         .par_chunks_mut(w * nd)
