@@ -324,5 +324,7 @@ fn sgm_on_the_phantom_regression() {
             bad2v < max_bad2_valid && density > min_density,
             "noise {noise}: {bad2v} %, {density} %"
         );
+        let mae = eval["depth.mae_mm"];
+        assert!(mae < max_mae, "noise {noise}: MAE {mae} mm");
     }
 }
