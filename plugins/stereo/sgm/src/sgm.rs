@@ -111,6 +111,12 @@ pub struct Scratch {
     census_r: Vec<u64>,
     cost: Vec<u8>,
     sum: Vec<u16>,
+    /// Path costs of the previous and the current row, and one pixel's copy.
+    prev_row: Vec<u16>,
+    cur_row: Vec<u16>,
+    tmp: Vec<u16>,
+    /// Right-image disparities for the left-right check.
+    right: Vec<f32>,
 }
 
 /// Census transform: bit k is set when neighbour k of the window is darker than the centre.
@@ -230,8 +236,8 @@ pub fn sgm(
                 }
             }
         });
-    aggregate(left, w, h, nd, p, &s.cost, &mut s.sum);
-    Ok(select(w, h, nd, p, &s.sum, valid))
+    aggregate(left, w, h, nd, p, s);
+    Ok(select(w, h, nd, p, &s.sum, valid, &mut s.right))
 }
 
 /// Directions as (dx, dy); the first four run top-down or left-right, the rest reverse them.
@@ -246,42 +252,39 @@ const DIRS: [(isize, isize); 8] = [
     (1, -1),
 ];
 
-fn aggregate(
-    img: &[u8],
-    w: usize,
-    h: usize,
-    nd: usize,
-    p: &SgmParams,
-    cost: &[u8],
-    sum: &mut Vec<u16>,
-) {
+fn aggregate(img: &[u8], w: usize, h: usize, nd: usize, p: &SgmParams, s: &mut Scratch) {
+    let Scratch {
+        cost,
+        sum,
+        prev_row,
+        cur_row,
+        tmp,
+        ..
+    } = s;
     sum.clear();
     sum.resize(w * h * nd, 0);
-    let dirs: Vec<(isize, isize)> = if p.paths == 8 {
-        DIRS.to_vec()
+    let dirs: &[(isize, isize)] = if p.paths == 8 {
+        &DIRS
     } else {
-        vec![(1, 0), (0, 1), (-1, 0), (0, -1)]
+        &[(1, 0), (0, 1), (-1, 0), (0, -1)]
     };
     // Each path keeps L of the previous pixel along it: for rows-order traversal that is the
     // previous row (dy != 0) or the previous pixel in the row (dy == 0).
-    let mut prev_row = vec![0u16; w * nd];
-    let mut cur_row = vec![0u16; w * nd];
-    let mut tmp = vec![0u16; nd];
-    for &(dx, dy) in &dirs {
+    prev_row.clear();
+    prev_row.resize(w * nd, 0);
+    cur_row.clear();
+    cur_row.resize(w * nd, 0);
+    tmp.clear();
+    tmp.resize(nd, 0);
+    for &(dx, dy) in dirs {
         // Traverse so that p - r was visited before p.
-        let ys: Vec<usize> = if dy > 0 || (dy == 0 && dx > 0) {
-            (0..h).collect()
-        } else {
-            (0..h).rev().collect()
-        };
-        let xs: Vec<usize> = if dx > 0 || (dx == 0 && dy > 0) {
-            (0..w).collect()
-        } else {
-            (0..w).rev().collect()
-        };
+        let rows_down = dy > 0 || (dy == 0 && dx > 0);
+        let cols_right = dx > 0 || (dx == 0 && dy > 0);
         let mut first_row = true;
-        for &y in &ys {
-            for &x in &xs {
+        for k in 0..h {
+            let y = if rows_down { k } else { h - 1 - k };
+            for j in 0..w {
+                let x = if cols_right { j } else { w - 1 - j };
                 let i = y * w + x;
                 let c = &cost[i * nd..(i + 1) * nd];
                 let (px, py) = (x as isize - dx, y as isize - dy);
@@ -295,7 +298,7 @@ fn aggregate(
                     let prev: &[u16] = if dy == 0 {
                         // Same row: the previous pixel's L is already in cur_row.
                         tmp.copy_from_slice(&cur_row[px as usize * nd..(px as usize + 1) * nd]);
-                        &tmp
+                        tmp
                     } else {
                         &prev_row[px as usize * nd..(px as usize + 1) * nd]
                     };
@@ -314,7 +317,7 @@ fn aggregate(
                     *sv = sv.saturating_add(l);
                 }
             }
-            std::mem::swap(&mut prev_row, &mut cur_row);
+            std::mem::swap(prev_row, cur_row);
             first_row = false;
         }
     }
@@ -328,6 +331,7 @@ fn select(
     p: &SgmParams,
     sum: &[u16],
     valid: Option<&[u8]>,
+    right: &mut Vec<f32>,
 ) -> Vec<f32> {
     let dmin = p.min_disparity as f32;
     let mut disp: Vec<f32> = (0..w * h)
@@ -367,25 +371,24 @@ fn select(
         .collect();
     if p.lr_check {
         // Right disparity at xr: argmin over d of S(y, xr + d, d).
-        let right: Vec<f32> = (0..w * h)
-            .into_par_iter()
-            .map(|j| {
-                let (y, xr) = (j / w, j % w);
-                let (mut best, mut bd) = (u16::MAX, None);
-                for d in 0..nd {
-                    let x = xr as isize + d as isize + p.min_disparity as isize;
-                    if x < 0 || x as usize >= w {
-                        continue;
-                    }
-                    let v = sum[(y * w + x as usize) * nd + d];
-                    if v < best {
-                        best = v;
-                        bd = Some(d);
-                    }
+        right.clear();
+        right.resize(w * h, f32::NAN);
+        right.par_iter_mut().enumerate().for_each(|(j, out)| {
+            let (y, xr) = (j / w, j % w);
+            let (mut best, mut bd) = (u16::MAX, None);
+            for d in 0..nd {
+                let x = xr as isize + d as isize + p.min_disparity as isize;
+                if x < 0 || x as usize >= w {
+                    continue;
                 }
-                bd.map_or(f32::NAN, |d| d as f32 + dmin)
-            })
-            .collect();
+                let v = sum[(y * w + x as usize) * nd + d];
+                if v < best {
+                    best = v;
+                    bd = Some(d);
+                }
+            }
+            *out = bd.map_or(f32::NAN, |d| d as f32 + dmin);
+        });
         for (i, d) in disp.iter_mut().enumerate() {
             if !d.is_finite() {
                 continue;
