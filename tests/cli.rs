@@ -117,29 +117,8 @@ fn inspect_on_hamlyn_saves_a_recording_the_rerun_cli_verifies() {
         "17 pairs of images are in it"
     );
 
-    let Some(rerun) = common::rerun_cli() else {
-        println!("skipped the recording check: no rerun CLI (pip install rerun-sdk==0.36.3, or set MISSLAM_RERUN_BIN)");
+    let Some(print) = common::rerun_verified(&rrd) else {
         return;
-    };
-    let verify = Command::new(&rerun)
-        .args(["rrd", "verify"])
-        .arg(&rrd)
-        .output()
-        .unwrap();
-    assert!(
-        verify.status.success(),
-        "rerun rrd verify: {}{}",
-        String::from_utf8_lossy(&verify.stdout),
-        String::from_utf8_lossy(&verify.stderr)
-    );
-    let print = |flag: &str| {
-        let out = Command::new(&rerun)
-            .args(["rrd", "print", flag])
-            .arg(&rrd)
-            .output()
-            .unwrap();
-        assert!(out.status.success());
-        String::from_utf8_lossy(&out.stdout).into_owned()
     };
     // `-v` lists entity@component per chunk; `-vv` prints the tables with their index columns.
     let text = print("-v");

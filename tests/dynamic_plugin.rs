@@ -10,7 +10,7 @@ use std::sync::Arc;
 
 use misslam::builtin_registry;
 use misslam::framework::dynamic::load_library;
-use misslam::framework::{graph, Image, Inputs, Outputs, Payload, RunOptions, Runtime};
+use misslam::framework::{graph, Image, Inputs, Outputs, Payload};
 
 fn build_plugin(features: &[&str], target: &str) -> PathBuf {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
@@ -106,13 +106,7 @@ fn example_plugin_loads_runs_and_reports_panics() {
     let mut registry = builtin_registry();
     registry.register(images_plugin()).unwrap();
     let g = graph::parse(Path::new("dyn.toml"), &text, &registry, &[]).expect("valid");
-    let report = Runtime::build(g)
-        .unwrap()
-        .run(RunOptions {
-            out_dir: Some(common::tmp_dir("dyn-graph")),
-            ..Default::default()
-        })
-        .unwrap();
+    let report = common::run_graph(g, &common::tmp_dir("dyn-graph"));
     assert!(report.error.is_none());
     assert_eq!(report.metrics.frames.processed, 2);
     let skipped = &report.metrics.frames.skipped_frames;

@@ -6,8 +6,8 @@ mod common;
 
 use std::path::Path;
 
+use misslam::framework::graph;
 use misslam::framework::toml;
-use misslam::framework::{graph, RunOptions, Runtime};
 use misslam_source_stereo_folder::{Params as FolderParams, StereoFolder};
 
 const SMALL: [&str; 3] = ["src.width=160", "src.height=120", "src.focal_px=175.0"];
@@ -23,13 +23,7 @@ fn phantom_graph_runs_end_to_end() {
         &sets,
     )
     .unwrap();
-    let report = Runtime::build(g)
-        .unwrap()
-        .run(RunOptions {
-            out_dir: Some(out.clone()),
-            ..Default::default()
-        })
-        .unwrap();
+    let report = common::run_graph(g, &out);
     assert!(
         report.error.is_none(),
         "{:?}",
@@ -142,13 +136,7 @@ inputs = { pose = "src.pose_gt", pose_gt = "src.pose_gt" }
         &[],
     )
     .unwrap();
-    let report = Runtime::build(g)
-        .unwrap()
-        .run(RunOptions {
-            out_dir: Some(out.clone()),
-            ..Default::default()
-        })
-        .unwrap();
+    let report = common::run_graph(g, &out);
     assert!(
         report.error.is_none(),
         "{:?}",
@@ -307,13 +295,7 @@ fn sgm_on_the_phantom_regression() {
             &sets,
         )
         .unwrap();
-        let report = Runtime::build(g)
-            .unwrap()
-            .run(RunOptions {
-                out_dir: Some(common::tmp_dir(&format!("sgm-phantom-{noise}"))),
-                ..Default::default()
-            })
-            .unwrap();
+        let report = common::run_graph(g, &common::tmp_dir(&format!("sgm-phantom-{noise}")));
         let eval = &report.metrics.eval;
         let (bad2v, density) = (eval["depth.bad2_valid_pct"], eval["depth.density_pct"]);
         println!(

@@ -5,7 +5,6 @@
 mod common;
 
 use std::collections::BTreeMap;
-use std::process::Command;
 use std::sync::Arc;
 
 use misslam::framework::nalgebra::{Isometry3, Translation3, UnitQuaternion};
@@ -183,26 +182,10 @@ fn every_payload_type_records_and_verifies() {
     drop(rec);
     assert!(std::fs::metadata(&rrd).unwrap().len() > 0);
 
-    let Some(rerun) = common::rerun_cli() else {
-        println!("skipped the check: no rerun CLI (pip install rerun-sdk==0.36.3)");
+    let Some(print) = common::rerun_verified(&rrd) else {
         return;
     };
-    let verify = Command::new(&rerun)
-        .args(["rrd", "verify"])
-        .arg(&rrd)
-        .output()
-        .unwrap();
-    assert!(
-        verify.status.success(),
-        "{}",
-        String::from_utf8_lossy(&verify.stderr)
-    );
-    let out = Command::new(&rerun)
-        .args(["rrd", "print", "-v"])
-        .arg(&rrd)
-        .output()
-        .unwrap();
-    let text = String::from_utf8_lossy(&out.stdout);
+    let text = print("-v");
     for needle in [
         "/node/stereo/left@Pinhole:image_from_camera",
         "/node/stereo/left@Image:buffer",

@@ -6,7 +6,7 @@ mod common;
 use std::path::Path;
 
 use misslam::builtin_registry;
-use misslam::framework::{graph, RunOptions, Runtime};
+use misslam::framework::{graph, Runtime};
 use misslam_source_stereo_folder::{Params, StereoFolder};
 
 const CALIB: &str = "width = 8\nheight = 6\nfx = 100.0\nfy = 100.0\ncx = 4.0\ncy = 3.0\nbaseline_mm = 5.0\ndoffs = 0.0\n";
@@ -117,13 +117,7 @@ fn missing_and_corrupt_frames_follow_the_error_policy() {
         d.display()
     );
     let g = graph::parse(Path::new("t.toml"), &text, &builtin_registry(), &[]).unwrap();
-    let report = Runtime::build(g)
-        .unwrap()
-        .run(RunOptions {
-            out_dir: Some(d.join("out")),
-            ..Default::default()
-        })
-        .unwrap();
+    let report = common::run_graph(g, &d.join("out"));
     assert_eq!(report.metrics.frames.processed, 3);
     let skipped: Vec<(u64, String)> = report
         .metrics
@@ -154,13 +148,7 @@ fn missing_and_corrupt_frames_follow_the_error_policy() {
         &[],
     )
     .unwrap();
-    let report = Runtime::build(g)
-        .unwrap()
-        .run(RunOptions {
-            out_dir: Some(d.join("out2")),
-            ..Default::default()
-        })
-        .unwrap();
+    let report = common::run_graph(g, &d.join("out2"));
     let e = report.error.unwrap().to_string();
     assert!(
         e.starts_with("frame 2: node `src`: ") && e.ends_with("right/30.png is missing"),

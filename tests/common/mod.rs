@@ -47,3 +47,44 @@ pub fn rerun_cli() -> Option<PathBuf> {
     }
     out.status.success().then_some(bin)
 }
+
+/// Builds a validated graph and runs it into `out`. Errors inside the run stay in the report
+/// for the caller to check; building must succeed.
+pub fn run_graph(g: misslam::framework::Graph, out: &Path) -> misslam::framework::RunReport {
+    misslam::framework::Runtime::build(g)
+        .expect("the graph builds")
+        .run(misslam::framework::RunOptions {
+            out_dir: Some(out.to_owned()),
+            ..Default::default()
+        })
+        .expect("metrics could be written")
+}
+
+/// Verifies a recording with the rerun CLI (`rrd verify`) and returns a function printing it
+/// (`rrd print FLAG`); `None`, with the reason printed, when there is no CLI.
+pub fn rerun_verified(rrd: &Path) -> Option<impl Fn(&str) -> String + '_> {
+    let Some(rerun) = rerun_cli() else {
+        println!("skipped the recording check: no rerun CLI (pip install rerun-sdk==0.36.3, or set MISSLAM_RERUN_BIN)");
+        return None;
+    };
+    let verify = std::process::Command::new(&rerun)
+        .args(["rrd", "verify"])
+        .arg(rrd)
+        .output()
+        .expect("rerun runs");
+    assert!(
+        verify.status.success(),
+        "rerun rrd verify: {}{}",
+        String::from_utf8_lossy(&verify.stdout),
+        String::from_utf8_lossy(&verify.stderr)
+    );
+    Some(move |flag: &str| {
+        let out = std::process::Command::new(&rerun)
+            .args(["rrd", "print", flag])
+            .arg(rrd)
+            .output()
+            .expect("rerun runs");
+        assert!(out.status.success(), "rerun rrd print {flag} failed");
+        String::from_utf8_lossy(&out.stdout).into_owned()
+    })
+}
