@@ -157,6 +157,49 @@ pub fn interpolate(
     ])
 }
 
+/// A scan of a raster: per pixel the camera-frame point (from the exact depth) and the unit face
+/// normal of the triangle seen there, turned towards the camera; NaN where nothing is seen.
+/// `cam` are the vertices in the camera frame, as [`rasterize`] leaves them.
+pub fn scan_maps(
+    view: &View,
+    r: &Raster,
+    cam: &[[f32; 3]],
+    triangles: &[[u32; 3]],
+) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
+    let n = r.depth.len();
+    let mut points = vec![[f32::NAN; 3]; n];
+    let mut normals = vec![[f32::NAN; 3]; n];
+    for i in 0..n {
+        let z = r.depth[i];
+        let Some(t) = triangles.get(r.triangle[i] as usize) else {
+            continue;
+        };
+        if !z.is_finite() {
+            continue;
+        }
+        let (u, v) = ((i % view.width as usize) as f32, (i / view.width as usize) as f32);
+        let p = [(u - view.cx) / view.fx * z, (v - view.cy) / view.fy * z, z];
+        let (a, b, c) = (cam[t[0] as usize], cam[t[1] as usize], cam[t[2] as usize]);
+        let e1 = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
+        let e2 = [c[0] - a[0], c[1] - a[1], c[2] - a[2]];
+        let mut nn = [
+            e1[1] * e2[2] - e1[2] * e2[1],
+            e1[2] * e2[0] - e1[0] * e2[2],
+            e1[0] * e2[1] - e1[1] * e2[0],
+        ];
+        let len = (nn[0] * nn[0] + nn[1] * nn[1] + nn[2] * nn[2]).sqrt();
+        if !(len > 0.0) {
+            continue;
+        }
+        let facing = nn[0] * p[0] + nn[1] * p[1] + nn[2] * p[2];
+        let s = if facing > 0.0 { -1.0 / len } else { 1.0 / len };
+        nn = nn.map(|x| x * s);
+        points[i] = p;
+        normals[i] = nn;
+    }
+    (points, normals)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1,0 +1,18 @@
+//! Embedded deformation: the graph (Sumner, Schmid, Pauly 2007), its energies with analytic
+//! Jacobians, a batch Gauss-Newton / Levenberg-Marquardt solver on block-sparse normal equations
+//! (faer sparse Cholesky, symbolic factorisation reused), and the decoupled two-step solver of
+//! MIS-SLAM. A plain library: the `deformation.batch` and `deformation.decoupled` nodes wrap it.
+
+pub mod decoupled;
+pub mod field;
+pub mod graph;
+pub mod knn;
+pub mod problem;
+pub mod solver;
+pub mod system;
+
+pub use decoupled::{Boundary, DecoupledInfo, DecoupledParams, DecoupledSolver};
+pub use field::DistanceField;
+pub use graph::{Binding, EdGraph, GraphParams, Sampling};
+pub use problem::{Correspondence, Intrinsics, Method, ModelPoints, Problem, Robust, Scan, SolverParams, Weights};
+pub use solver::{Info, SolveSet, Solver};

@@ -1,0 +1,238 @@
+//! What a deformation solve is given (the model's visible points, the scan, the distance field, the
+//! sparse correspondences, the pose prior) and the energy's weights and options.
+
+use crate::field::DistanceField;
+use crate::graph::Binding;
+use misslam_framework::nalgebra::{Isometry3, Vector3};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+/// Pinhole intrinsics of the scan (left camera), pixels.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Intrinsics {
+    /// Focal length x.
+    pub fx: f64,
+    /// Focal length y.
+    pub fy: f64,
+    /// Principal point x.
+    pub cx: f64,
+    /// Principal point y.
+    pub cy: f64,
+    /// Width.
+    pub width: u32,
+    /// Height.
+    pub height: u32,
+}
+
+/// The live observation for projective association: vertex and normal maps in the camera frame,
+/// row-major, NaN where invalid.
+#[derive(Clone, Copy, Debug)]
+pub struct Scan<'a> {
+    /// Camera model of the maps.
+    pub intrinsics: Intrinsics,
+    /// Gamma(u, v), mm.
+    pub vertices: &'a [[f32; 3]],
+    /// Unit normals H(u, v).
+    pub normals: &'a [[f32; 3]],
+}
+
+/// The model points the data terms use (the visible set L), in the canonical frame.
+#[derive(Clone, Copy, Debug)]
+pub struct ModelPoints<'a> {
+    /// Positions v_i.
+    pub points: &'a [Vector3<f64>],
+    /// Unit normals n_i (for the association's angle test).
+    pub normals: &'a [Vector3<f64>],
+    /// Each point's nodes and weights.
+    pub bindings: &'a [Binding],
+}
+
+impl ModelPoints<'_> {
+    /// No points.
+    pub const EMPTY: ModelPoints<'static> = ModelPoints { points: &[], normals: &[], bindings: &[] };
+}
+
+/// A sparse correspondence: a canonical model point (a keypoint of the model) should land on an
+/// observed 3D point of the current frame (camera frame).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Correspondence {
+    /// The model keypoint, canonical frame.
+    pub point: Vector3<f64>,
+    /// Its binding to the graph.
+    pub binding: Binding,
+    /// The observed position, camera frame, mm.
+    pub target: Vector3<f64>,
+}
+
+/// Everything one solve sees.
+#[derive(Clone, Copy, Debug)]
+pub struct Problem<'a> {
+    /// Model points for the data terms (projective and distance-field).
+    pub model: ModelPoints<'a>,
+    /// The scan for projective point-to-plane association (E_data, template-free).
+    pub scan: Option<Scan<'a>>,
+    /// The distance field for E_data of the template path (camera frame).
+    pub field: Option<&'a DistanceField>,
+    /// Sparse correspondences (E_corr).
+    pub correspondences: &'a [Correspondence],
+    /// The rigid tracker's pose R~_c, T~_c (`world_from_camera`), the prior of E_r and E_p, and the
+    /// starting pose of the solve.
+    pub pose_prior: Isometry3<f64>,
+}
+
+/// Weights of the energy terms (each a sum of squared residuals).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct Weights {
+    /// w_rot: Sumner's rotation term ||A^T A - I||_F^2 per node.
+    pub rot: f64,
+    /// w_reg: regularisation, per edge and direction, mm^-2 scale.
+    pub reg: f64,
+    /// w_data: point-to-plane projective data term.
+    pub data: f64,
+    /// Extra point-to-point part of the projective data term, as a fraction of w_data (0 = pure
+    /// point-to-plane, the default: the associated scan point is the one at the rounded pixel, up to
+    /// half a pixel off along the surface, so a point-to-point part biases the fit by that much).
+    pub point_to_point: f64,
+    /// w_data of the distance-field term (template path).
+    pub field: f64,
+    /// w_corr: sparse 3D correspondences.
+    pub corr: f64,
+    /// w_r: rotation prior ||log(R~^T R)||^2 (rad^-2), when the pose is solved.
+    pub pose_rot: f64,
+    /// w_p: translation prior ||T - T~||^2 (mm^-2), when the pose is solved.
+    pub pose_trans: f64,
+}
+
+impl Default for Weights {
+    fn default() -> Self {
+        Weights { rot: 1.0, reg: 10.0, data: 1.0, point_to_point: 0.0, field: 1.0, corr: 1.0, pose_rot: 1e4, pose_trans: 10.0 }
+    }
+}
+
+/// Robust kernel of the data terms.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum Robust {
+    /// Plain least squares.
+    #[default]
+    None,
+    /// Huber: quadratic within the scale, linear beyond.
+    Huber,
+    /// Cauchy (Lorentzian): rho(r) = c^2 log(1 + r^2 / c^2).
+    Cauchy,
+}
+
+impl Robust {
+    /// IRLS weight and cost (in units of r^2) of a residual norm `r` at scale `c`.
+    #[inline]
+    pub fn weight_cost(self, r: f64, c: f64) -> (f64, f64) {
+        match self {
+            Robust::None => (1.0, r * r),
+            Robust::Huber => {
+                if r <= c {
+                    (1.0, r * r)
+                } else {
+                    (c / r, c * (2.0 * r - c))
+                }
+            }
+            Robust::Cauchy => {
+                let q = r * r / (c * c);
+                (1.0 / (1.0 + q), c * c * (1.0 + q).ln())
+            }
+        }
+    }
+}
+
+/// Nonlinear least-squares method.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum Method {
+    /// Gauss-Newton: every step taken (a tiny ridge keeps unobserved components solvable).
+    GaussNewton,
+    /// Levenberg-Marquardt: H + lambda diag(H), steps accepted only when the cost falls.
+    #[default]
+    LevenbergMarquardt,
+}
+
+/// Options of one solve.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct SolverParams {
+    /// Gauss-Newton or Levenberg-Marquardt.
+    pub method: Method,
+    /// Outer iterations (each re-associates the scan), 3 to 10 in the literature.
+    pub max_iterations: usize,
+    /// Starting LM damping lambda (relative to diag(H)).
+    pub initial_lambda: f64,
+    /// Stop when the cost falls by less than this fraction in an iteration.
+    pub min_relative_decrease: f64,
+    /// Stop when the largest parameter step is below this.
+    pub min_step: f64,
+    /// Solve the global scope pose (R_c, T_c) too, held near the tracker's by E_r and E_p (MIS-SLAM).
+    pub optimize_pose: bool,
+    /// Projective association: reject a scan point farther than this from the deformed model point, mm.
+    pub max_distance_mm: f64,
+    /// Projective association: reject when the normals differ by more than this, degrees.
+    pub max_normal_angle_deg: f64,
+    /// Robust kernel of the data and correspondence terms.
+    pub robust: Robust,
+    /// Scale of the robust kernel, mm.
+    pub robust_scale_mm: f64,
+    /// Term weights.
+    pub weights: Weights,
+}
+
+impl Default for SolverParams {
+    fn default() -> Self {
+        SolverParams {
+            method: Method::LevenbergMarquardt,
+            max_iterations: 6,
+            initial_lambda: 1e-4,
+            min_relative_decrease: 1e-4,
+            min_step: 1e-6,
+            optimize_pose: false,
+            max_distance_mm: 10.0,
+            max_normal_angle_deg: 45.0,
+            robust: Robust::None,
+            robust_scale_mm: 2.0,
+            weights: Weights::default(),
+        }
+    }
+}
+
+impl SolverParams {
+    /// Checks ranges, naming the field.
+    pub fn validate(&self) -> Result<(), String> {
+        let w = &self.weights;
+        for (name, v) in [
+            ("weights.rot", w.rot),
+            ("weights.reg", w.reg),
+            ("weights.data", w.data),
+            ("weights.point_to_point", w.point_to_point),
+            ("weights.field", w.field),
+            ("weights.corr", w.corr),
+            ("weights.pose_rot", w.pose_rot),
+            ("weights.pose_trans", w.pose_trans),
+            ("initial_lambda", self.initial_lambda),
+            ("min_relative_decrease", self.min_relative_decrease),
+            ("min_step", self.min_step),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!("{name} must be a finite number >= 0, got {v}"));
+            }
+        }
+        for (name, v) in [("max_distance_mm", self.max_distance_mm), ("robust_scale_mm", self.robust_scale_mm)] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(format!("{name} must be > 0, got {v}"));
+            }
+        }
+        if !(self.max_normal_angle_deg > 0.0 && self.max_normal_angle_deg <= 180.0) {
+            return Err(format!("max_normal_angle_deg must be in (0, 180], got {}", self.max_normal_angle_deg));
+        }
+        if self.max_iterations == 0 {
+            return Err("max_iterations must be at least 1".into());
+        }
+        Ok(())
+    }
+}

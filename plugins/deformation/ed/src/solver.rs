@@ -1,0 +1,646 @@
+//! The energy (E_rot, E_reg, projective E_data, distance-field E_data, E_corr, E_r, E_p) with
+//! analytic Jacobians, and the Gauss-Newton / Levenberg-Marquardt loop over a chosen set of solved
+//! nodes. The batch solver solves every node; the decoupled solver calls the same loop twice on
+//! complementary sets.
+//!
+//! Jacobian structure: with a node's unknowns laid out as the 3x4 matrix `[A_j | t_j]` row-major,
+//! the derivative of a deformed point with respect to node j is `w_j I (x) u_j^T` with
+//! `u_j = [v - g_j; 1]`. A residual row `a^T (p - q)` of a point therefore contributes
+//! `w_j w_k (R a a^T R^T) (x) (u_j u_k^T)` to block (j, k) of J^T J: a 3x3 times a 4x4 outer product,
+//! assembled without forming J. The pose update is right-multiplied, world_from_camera <-
+//! world_from_camera * exp(xi), xi = (rho, omega), so d p_cam / d xi = [-I, [p]x].
+
+use crate::graph::{apply_node, Binding, EdGraph};
+use crate::problem::{Method, Problem, SolverParams};
+use crate::system::{BlockSystem, PatternKey};
+use misslam_framework::nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use rayon::prelude::*;
+use std::time::Instant;
+
+/// What one solve did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Info {
+    /// Outer iterations run.
+    pub iterations: usize,
+    /// Cost at the start (with the first association).
+    pub cost_before: f64,
+    /// Cost at the end (with the last association).
+    pub cost_after: f64,
+    /// Cost after each accepted iteration.
+    pub costs: Vec<f64>,
+    /// Nodes solved.
+    pub solved_nodes: usize,
+    /// Data residuals associated at the end (projective) plus field and correspondence terms.
+    pub data_terms: usize,
+    /// Symbolic factorisations computed in this solve (0 when the previous one was reused).
+    pub symbolic_builds: usize,
+    /// Milliseconds: association, assembly, factorisation plus solve, total.
+    pub ms_associate: f64,
+    /// Assembly time, ms.
+    pub ms_assemble: f64,
+    /// Numeric factorisation and triangular solves, ms.
+    pub ms_factor: f64,
+    /// Whole solve, ms.
+    pub ms_total: f64,
+}
+
+/// Which nodes and terms one call of the loop solves.
+#[derive(Clone, Debug, Default)]
+pub struct SolveSet {
+    /// Solved nodes, ascending ids.
+    pub free: Vec<u32>,
+    /// Directed regularisation edges (j, k) with at least one end solved (the other held fixed).
+    pub reg_edges: Vec<(u32, u32)>,
+    /// Use the data terms (projective, field, correspondences).
+    pub data: bool,
+    /// Solve the pose too.
+    pub pose: bool,
+}
+
+impl SolveSet {
+    /// Every node, every edge, all terms (the batch problem).
+    pub fn all(graph: &EdGraph, pose: bool) -> Self {
+        let free: Vec<u32> = (0..graph.len() as u32).collect();
+        let mut reg_edges = Vec::new();
+        for j in 0..graph.len() {
+            for &k in graph.neighbors(j) {
+                reg_edges.push((j as u32, k));
+            }
+        }
+        SolveSet { free, reg_edges, data: true, pose }
+    }
+}
+
+/// A projective association: model point i meets scan point `q` with normal `n` (camera frame).
+#[derive(Clone, Copy, Debug)]
+struct Assoc {
+    i: u32,
+    q: Vector3<f64>,
+    n: Vector3<f64>,
+}
+
+/// Reusable solver state (the factorisation workspace; its symbolic part survives across calls
+/// while the pattern is unchanged).
+#[derive(Default)]
+pub struct Solver {
+    system: BlockSystem,
+    assoc: Vec<Assoc>,
+    dx: Vec<f64>,
+    saved: Vec<[f64; 12]>,
+}
+
+/// The pose retraction the solver uses: world_from_camera * exp(xi), xi = (rho, omega).
+pub fn pose_update(pose: &Isometry3<f64>, xi: &[f64]) -> Isometry3<f64> {
+    let step = Isometry3::from_parts(
+        Translation3::new(xi[0], xi[1], xi[2]),
+        UnitQuaternion::from_scaled_axis(Vector3::new(xi[3], xi[4], xi[5])),
+    );
+    pose * step
+}
+
+#[inline]
+fn u_of(v: &Vector3<f64>, g: &Vector3<f64>) -> [f64; 4] {
+    [v.x - g.x, v.y - g.y, v.z - g.z, 1.0]
+}
+
+/// Residuals and Jacobian of Sumner's rotation term for one node: 6 rows over the 12 unknowns.
+/// Off-diagonal rows carry sqrt(2), so the sum of squares equals ||A^T A - I||_F^2.
+pub fn rot_residuals(p: &[f64; 12]) -> ([f64; 6], [[f64; 12]; 6]) {
+    let col = |i: usize| Vector3::new(p[i], p[4 + i], p[8 + i]);
+    let c = [col(0), col(1), col(2)];
+    let s2 = std::f64::consts::SQRT_2;
+    let mut r = [0.0; 6];
+    let mut j = [[0.0; 12]; 6];
+    let put = |row: &mut [f64; 12], i: usize, v: Vector3<f64>, f: f64| {
+        row[i] += f * v.x;
+        row[4 + i] += f * v.y;
+        row[8 + i] += f * v.z;
+    };
+    let pairs = [(0, 1), (0, 2), (1, 2)];
+    for (q, &(a, b)) in pairs.iter().enumerate() {
+        r[q] = s2 * c[a].dot(&c[b]);
+        put(&mut j[q], a, c[b], s2);
+        put(&mut j[q], b, c[a], s2);
+    }
+    for a in 0..3 {
+        r[3 + a] = c[a].dot(&c[a]) - 1.0;
+        put(&mut j[3 + a], a, c[a], 2.0);
+    }
+    (r, j)
+}
+
+/// The rotation-vector residual of E_r: log(R~^T R).
+fn pose_rot_residual(prior: &Isometry3<f64>, pose: &Isometry3<f64>) -> Vector3<f64> {
+    (prior.rotation.inverse() * pose.rotation).scaled_axis()
+}
+
+impl Solver {
+    /// Symbolic factorisations computed so far.
+    pub fn symbolic_builds(&self) -> usize {
+        self.system.symbolic_builds
+    }
+
+    /// Projective association at the current state (parallel over model points).
+    fn associate(&mut self, graph: &EdGraph, problem: &Problem, pose: &Isometry3<f64>, params: &SolverParams) {
+        self.assoc.clear();
+        let Some(scan) = problem.scan else { return };
+        let model = &problem.model;
+        let cam_from_world = pose.inverse();
+        let rot_cw = cam_from_world.rotation.to_rotation_matrix();
+        let nm = graph.normal_matrices();
+        let cos_max = params.max_normal_angle_deg.to_radians().cos();
+        let max_d2 = params.max_distance_mm * params.max_distance_mm;
+        let k = scan.intrinsics;
+        let (w, h) = (k.width as usize, k.height as usize);
+        if scan.vertices.len() != w * h || scan.normals.len() != w * h {
+            return;
+        }
+        self.assoc = (0..model.points.len())
+            .into_par_iter()
+            .filter_map(|i| {
+                let b = &model.bindings[i];
+                let vw = graph.warp_point(&model.points[i], b);
+                let p = cam_from_world * misslam_framework::nalgebra::Point3::from(vw);
+                if !(p.z > 1e-6) {
+                    return None;
+                }
+                let u = (k.fx * p.x / p.z + k.cx).round();
+                let v = (k.fy * p.y / p.z + k.cy).round();
+                if !(u >= 0.0 && v >= 0.0 && (u as usize) < w && (v as usize) < h) {
+                    return None;
+                }
+                let idx = v as usize * w + u as usize;
+                let q = scan.vertices[idx];
+                let n = scan.normals[idx];
+                if !q.iter().chain(n.iter()).all(|c| c.is_finite()) {
+                    return None;
+                }
+                let q = Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64);
+                let n = Vector3::new(n[0] as f64, n[1] as f64, n[2] as f64);
+                if (p.coords - q).norm_squared() > max_d2 {
+                    return None;
+                }
+                if let Some(mn) = model.normals.get(i) {
+                    let nc = rot_cw * graph.warp_normal(mn, b, &nm);
+                    if nc.dot(&n) < cos_max {
+                        return None;
+                    }
+                }
+                Some(Assoc { i: i as u32, q, n })
+            })
+            .collect();
+    }
+
+    /// Total cost of the terms of `set` at the current state, with the current association.
+    fn cost(&self, graph: &EdGraph, problem: &Problem, pose: &Isometry3<f64>, set: &SolveSet, params: &SolverParams) -> f64 {
+        let w = &params.weights;
+        let mut total = 0.0;
+        let free: &[u32] = &set.free;
+        for &j in free {
+            let (r, _) = rot_residuals(&graph.warp[j as usize]);
+            total += w.rot * r.iter().map(|x| x * x).sum::<f64>();
+        }
+        for &(j, k) in &set.reg_edges {
+            total += w.reg * reg_residual(graph, j, k).norm_squared();
+        }
+        if set.data {
+            let cfw = pose.inverse();
+            let model = &problem.model;
+            let c = params.robust_scale_mm;
+            total += self
+                .assoc
+                .par_iter()
+                .map(|a| {
+                    let vw = graph.warp_point(&model.points[a.i as usize], &model.bindings[a.i as usize]);
+                    let p = cfw * misslam_framework::nalgebra::Point3::from(vw);
+                    let d = p.coords - a.q;
+                    let rn = a.n.dot(&d);
+                    let r2 = rn * rn + w.point_to_point * d.norm_squared();
+                    w.data * params.robust.weight_cost(r2.sqrt(), c).1
+                })
+                .sum::<f64>();
+            if let Some(field) = problem.field {
+                total += (0..model.points.len())
+                    .into_par_iter()
+                    .filter_map(|i| {
+                        let vw = graph.warp_point(&model.points[i], &model.bindings[i]);
+                        let p = cfw * misslam_framework::nalgebra::Point3::from(vw);
+                        field.sample(&p.coords).map(|(d, _)| w.field * params.robust.weight_cost(d.abs(), c).1)
+                    })
+                    .sum::<f64>();
+            }
+            for corr in problem.correspondences {
+                let vw = graph.warp_point(&corr.point, &corr.binding);
+                let p = cfw * misslam_framework::nalgebra::Point3::from(vw);
+                let r = (p.coords - corr.target).norm();
+                total += w.corr * params.robust.weight_cost(r, c).1;
+            }
+        }
+        if set.pose {
+            total += w.pose_rot * pose_rot_residual(&problem.pose_prior, pose).norm_squared();
+            total += w.pose_trans * (pose.translation.vector - problem.pose_prior.translation.vector).norm_squared();
+        }
+        total
+    }
+
+    /// Block pattern of `set`: edges between solved nodes and pairs of solved nodes that share a point.
+    fn pattern(&self, graph: &EdGraph, problem: &Problem, set: &SolveSet) -> PatternKey {
+        let mut is_free = vec![false; graph.len()];
+        for &j in &set.free {
+            is_free[j as usize] = true;
+        }
+        let mut pairs: Vec<(u32, u32)> = Vec::new();
+        for &(j, k) in &set.reg_edges {
+            if is_free[j as usize] && is_free[k as usize] && j != k {
+                pairs.push((j.min(k), j.max(k)));
+            }
+        }
+        if set.data {
+            let mut add = |b: &Binding| {
+                for a in 0..b.len as usize {
+                    for c in a + 1..b.len as usize {
+                        let (x, y) = (b.nodes[a], b.nodes[c]);
+                        if is_free[x as usize] && is_free[y as usize] && x != y {
+                            pairs.push((x.min(y), x.max(y)));
+                        }
+                    }
+                }
+            };
+            for b in problem.model.bindings {
+                add(b);
+            }
+            for c in problem.correspondences {
+                add(&c.binding);
+            }
+        }
+        pairs.sort_unstable();
+        pairs.dedup();
+        PatternKey { free: set.free.clone(), pairs, pose: set.pose }
+    }
+
+    /// Adds one point's residual rows: each row is (a, r, weight) with r = a . (p_cam - target)
+    /// (or any residual whose derivative with respect to p_cam is a). `rows` share the point.
+    #[allow(clippy::too_many_arguments)]
+    fn add_point(
+        sys: &mut BlockSystem,
+        graph: &EdGraph,
+        v: &Vector3<f64>,
+        b: &Binding,
+        p_cam: &Vector3<f64>,
+        r_wc: &Matrix3<f64>,
+        rows: &[(Vector3<f64>, f64, f64)],
+        pose: bool,
+    ) {
+        // M_cam = sum w a a^T, b_cam = sum w a r, in the camera frame; world = R M R^T, R b.
+        let mut m_cam = Matrix3::zeros();
+        let mut b_cam = Vector3::zeros();
+        for (a, r, w) in rows {
+            m_cam += *w * a * a.transpose();
+            b_cam += *w * *r * a;
+        }
+        let m_w = r_wc * m_cam * r_wc.transpose();
+        let b_w = r_wc * b_cam;
+        let m: [[f64; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| m_w[(i, j)]));
+        let n = b.len as usize;
+        let mut us = [[0.0; 4]; crate::graph::MAX_K];
+        for a in 0..n {
+            us[a] = u_of(v, &graph.nodes()[b.nodes[a] as usize]);
+        }
+        for a in 0..n {
+            let sa = sys.slot[b.nodes[a] as usize];
+            if sa == u32::MAX {
+                continue;
+            }
+            let wa = b.weights[a];
+            for c in a..n {
+                let sc = sys.slot[b.nodes[c] as usize];
+                if sc == u32::MAX {
+                    continue;
+                }
+                let wc = b.weights[c];
+                if a == c {
+                    sys.add_kron(sa, sa, &m, &us[a], &us[a], wa * wa);
+                } else if sa == sc {
+                    // The same node twice in one binding (never for a proper k-NN): both orders.
+                    sys.add_kron(sa, sa, &m, &us[a], &us[c], wa * wc);
+                    sys.add_kron(sa, sa, &m, &us[c], &us[a], wa * wc);
+                } else {
+                    sys.add_kron(sa, sc, &m, &us[a], &us[c], wa * wc);
+                }
+            }
+            let g = &mut sys.grad[12 * sa as usize..12 * sa as usize + 12];
+            for mm in 0..3 {
+                for c in 0..4 {
+                    g[mm * 4 + c] += wa * b_w[mm] * us[a][c];
+                }
+            }
+        }
+        if pose {
+            // J_xi per row = [-a^T, (a x p)^T]; cross = R sum w a J_xi.
+            let off = 12 * sys.blocks_solved();
+            let mut q_cam = [[0.0; 6]; 3];
+            for (a, r, w) in rows {
+                let axp = a.cross(p_cam);
+                let jx = [-a.x, -a.y, -a.z, axp.x, axp.y, axp.z];
+                for i in 0..6 {
+                    for k in 0..=i {
+                        sys.pose_block[i * 6 + k] += w * jx[i] * jx[k];
+                    }
+                    sys.grad[off + i] += w * jx[i] * r;
+                    for (mm, q) in q_cam.iter_mut().enumerate() {
+                        q[i] += w * a[mm] * jx[i];
+                    }
+                }
+            }
+            // Symmetrise the lower-triangle accumulation into the column-major upper storage.
+            let mut q_w = [[0.0; 6]; 3];
+            for i in 0..6 {
+                for mm in 0..3 {
+                    q_w[mm][i] = (0..3).map(|s| r_wc[(mm, s)] * q_cam[s][i]).sum();
+                }
+            }
+            for a in 0..n {
+                let sa = sys.slot[b.nodes[a] as usize];
+                if sa == u32::MAX {
+                    continue;
+                }
+                let wa = b.weights[a];
+                let cross = &mut sys.pose_cross[sa as usize];
+                for pc in 0..6 {
+                    for mm in 0..3 {
+                        for c in 0..4 {
+                            cross[pc * 12 + mm * 4 + c] += wa * us[a][c] * q_w[mm][pc];
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// Assembles J^T W J and J^T W r of `set` at the current state.
+    fn assemble(&mut self, graph: &EdGraph, problem: &Problem, pose: &Isometry3<f64>, set: &SolveSet, params: &SolverParams) {
+        let w = &params.weights;
+        let sys = &mut self.system;
+        // E_rot.
+        for &j in &set.free {
+            let s = sys.slot[j as usize];
+            let (r, jac) = rot_residuals(&graph.warp[j as usize]);
+            let mut h = [0.0; 144];
+            for a in 0..12 {
+                for c in 0..12 {
+                    let mut acc = 0.0;
+                    for q in 0..6 {
+                        acc += jac[q][a] * jac[q][c];
+                    }
+                    h[c * 12 + a] = w.rot * acc;
+                }
+                let g: f64 = (0..6).map(|q| jac[q][a] * r[q]).sum();
+                sys.grad[12 * s as usize + a] += w.rot * g;
+            }
+            sys.add_diag(s, &h);
+        }
+        // E_reg: r = A_j (g_k - g_j) + g_j + t_j - g_k - t_k.
+        const E4: [f64; 4] = [0.0, 0.0, 0.0, 1.0];
+        for &(j, k) in &set.reg_edges {
+            let r = reg_residual(graph, j, k);
+            let d = graph.nodes()[k as usize] - graph.nodes()[j as usize];
+            let u = [d.x, d.y, d.z, 1.0];
+            let (sj, sk) = (sys.slot[j as usize], sys.slot[k as usize]);
+            if sj != u32::MAX {
+                sys.add_kron_identity(sj, sj, &u, &u, w.reg);
+                for m in 0..3 {
+                    for c in 0..4 {
+                        sys.grad[12 * sj as usize + m * 4 + c] += w.reg * r[m] * u[c];
+                    }
+                }
+            }
+            if sk != u32::MAX {
+                sys.add_kron_identity(sk, sk, &E4, &E4, w.reg);
+                for m in 0..3 {
+                    sys.grad[12 * sk as usize + m * 4 + 3] -= w.reg * r[m];
+                }
+            }
+            if sj != u32::MAX && sk != u32::MAX {
+                sys.add_kron_identity(sj, sk, &u, &E4, -w.reg);
+            }
+        }
+        if set.data {
+            let cfw = pose.inverse();
+            let r_wc = *pose.rotation.to_rotation_matrix().matrix();
+            let model = &problem.model;
+            let c = params.robust_scale_mm;
+            for a in &self.assoc {
+                let i = a.i as usize;
+                let vw = graph.warp_point(&model.points[i], &model.bindings[i]);
+                let p = (cfw * misslam_framework::nalgebra::Point3::from(vw)).coords;
+                let d = p - a.q;
+                let rn = a.n.dot(&d);
+                let r2 = rn * rn + w.point_to_point * d.norm_squared();
+                let (rw, _) = params.robust.weight_cost(r2.sqrt(), c);
+                let wd = w.data * rw;
+                let pp = w.point_to_point * wd;
+                let rows = [
+                    (a.n, rn, wd),
+                    (Vector3::x(), d.x, pp),
+                    (Vector3::y(), d.y, pp),
+                    (Vector3::z(), d.z, pp),
+                ];
+                let used = if w.point_to_point > 0.0 { &rows[..] } else { &rows[..1] };
+                Self::add_point(sys, graph, &model.points[i], &model.bindings[i], &p, &r_wc, used, set.pose);
+            }
+            if let Some(field) = problem.field {
+                for i in 0..model.points.len() {
+                    let vw = graph.warp_point(&model.points[i], &model.bindings[i]);
+                    let p = (cfw * misslam_framework::nalgebra::Point3::from(vw)).coords;
+                    if let Some((dv, grad)) = field.sample(&p) {
+                        let (rw, _) = params.robust.weight_cost(dv.abs(), c);
+                        let rows = [(grad, dv, w.field * rw)];
+                        Self::add_point(sys, graph, &model.points[i], &model.bindings[i], &p, &r_wc, &rows, set.pose);
+                    }
+                }
+            }
+            for corr in problem.correspondences {
+                let vw = graph.warp_point(&corr.point, &corr.binding);
+                let p = (cfw * misslam_framework::nalgebra::Point3::from(vw)).coords;
+                let d = p - corr.target;
+                let (rw, _) = params.robust.weight_cost(d.norm(), c);
+                let wc = w.corr * rw;
+                let rows = [(Vector3::x(), d.x, wc), (Vector3::y(), d.y, wc), (Vector3::z(), d.z, wc)];
+                Self::add_point(sys, graph, &corr.point, &corr.binding, &p, &r_wc, &rows, set.pose);
+            }
+        }
+        if set.pose {
+            let off = 12 * sys.blocks_solved();
+            // E_r: d log(R~^T R exp(w)) / d w ~ I; E_p: d (T + R rho) / d rho = R.
+            let rr = pose_rot_residual(&problem.pose_prior, pose);
+            let rt = pose.translation.vector - problem.pose_prior.translation.vector;
+            let rt_cam = pose.rotation.inverse() * rt;
+            for i in 0..3 {
+                sys.pose_block[i * 6 + i] += w.pose_trans;
+                sys.pose_block[(3 + i) * 6 + 3 + i] += w.pose_rot;
+                sys.grad[off + i] += w.pose_trans * rt_cam[i];
+                sys.grad[off + 3 + i] += w.pose_rot * rr[i];
+            }
+            // The pose block was accumulated as lower triangle (i >= k) in row-major i * 6 + k,
+            // which is the upper triangle in column-major: k * 6 + i with k <= i. Nothing to do.
+        }
+    }
+
+    /// Diagnostics: associates at the current state, assembles `set` and returns the dense
+    /// J^T W J (row-major), J^T W r, each node's block index (u32::MAX when fixed) and the cost.
+    /// The cost's gradient is 2 J^T W r; at a zero residual its Hessian is 2 J^T W J.
+    pub fn linearize_dense(
+        &mut self,
+        graph: &EdGraph,
+        pose: &Isometry3<f64>,
+        problem: &Problem,
+        set: &SolveSet,
+        params: &SolverParams,
+    ) -> Result<(Vec<f64>, Vec<f64>, Vec<u32>, f64), String> {
+        let key = self.pattern(graph, problem, set);
+        self.system.prepare(graph.len(), key)?;
+        if set.data {
+            self.associate(graph, problem, pose, params);
+        }
+        self.assemble(graph, problem, pose, set, params);
+        let cost = self.cost(graph, problem, pose, set, params);
+        Ok((self.system.to_dense(), self.system.grad.clone(), self.system.slot.clone(), cost))
+    }
+
+    /// Diagnostics: the cost of `set` at the given state with the association of the last
+    /// [`Self::linearize_dense`] (for finite differences).
+    pub fn cost_fixed_association(
+        &self,
+        graph: &EdGraph,
+        pose: &Isometry3<f64>,
+        problem: &Problem,
+        set: &SolveSet,
+        params: &SolverParams,
+    ) -> f64 {
+        self.cost(graph, problem, pose, set, params)
+    }
+
+    /// Number of projective associations at the last association.
+    pub fn associations(&self) -> usize {
+        self.assoc.len()
+    }
+
+    /// Runs the loop on `set`, updating `graph.warp` and `pose` in place.
+    pub fn solve(
+        &mut self,
+        graph: &mut EdGraph,
+        pose: &mut Isometry3<f64>,
+        problem: &Problem,
+        set: &SolveSet,
+        params: &SolverParams,
+    ) -> Result<Info, String> {
+        params.validate()?;
+        let t0 = Instant::now();
+        let mut info = Info { solved_nodes: set.free.len(), ..Default::default() };
+        if problem.model.points.len() != problem.model.bindings.len() {
+            return Err(format!(
+                "{} model points but {} bindings",
+                problem.model.points.len(),
+                problem.model.bindings.len()
+            ));
+        }
+        let builds0 = self.system.symbolic_builds;
+        let key = self.pattern(graph, problem, set);
+        self.system.prepare(graph.len(), key.clone())?;
+        let ta = Instant::now();
+        if set.data {
+            self.associate(graph, problem, pose, params);
+        }
+        info.ms_associate += ta.elapsed().as_secs_f64() * 1e3;
+        let mut cost = self.cost(graph, problem, pose, set, params);
+        info.cost_before = cost;
+        let mut lambda = match params.method {
+            Method::GaussNewton => 0.0,
+            Method::LevenbergMarquardt => params.initial_lambda,
+        };
+        for _ in 0..params.max_iterations {
+            info.iterations += 1;
+            self.system.prepare(graph.len(), key.clone())?;
+            let tb = Instant::now();
+            self.assemble(graph, problem, pose, set, params);
+            info.ms_assemble += tb.elapsed().as_secs_f64() * 1e3;
+            let pose0 = *pose;
+            self.saved.clear();
+            self.saved.extend(set.free.iter().map(|&j| graph.warp[j as usize]));
+            let mut accepted = false;
+            let mut step_norm = 0.0f64;
+            for _attempt in 0..10 {
+                let tf = Instant::now();
+                let ok = self.system.solve(lambda, 1e-6, &mut self.dx)?;
+                info.ms_factor += tf.elapsed().as_secs_f64() * 1e3;
+                if ok {
+                    for (idx, &j) in set.free.iter().enumerate() {
+                        let s = self.system.slot[j as usize] as usize;
+                        let p = &mut graph.warp[j as usize];
+                        for q in 0..12 {
+                            p[q] = self.saved[idx][q] + self.dx[12 * s + q];
+                        }
+                    }
+                    if set.pose {
+                        let off = 12 * self.system.blocks_solved();
+                        *pose = pose_update(&pose0, &self.dx[off..off + 6]);
+                    }
+                    step_norm = self.dx.iter().fold(0.0, |m, x| m.max(x.abs()));
+                    let new_cost = self.cost(graph, problem, pose, set, params);
+                    if params.method == Method::GaussNewton || new_cost <= cost {
+                        accepted = true;
+                        cost = new_cost;
+                        lambda = (lambda / 3.0).max(1e-9);
+                        break;
+                    }
+                }
+                // Rejected: restore and damp more.
+                for (idx, &j) in set.free.iter().enumerate() {
+                    graph.warp[j as usize] = self.saved[idx];
+                }
+                *pose = pose0;
+                if params.method == Method::GaussNewton {
+                    lambda = 1e-6;
+                } else {
+                    lambda = (lambda * 10.0).max(1e-6);
+                }
+            }
+            if !accepted {
+                break;
+            }
+            let ta = Instant::now();
+            if set.data && problem.scan.is_some() {
+                self.associate(graph, problem, pose, params);
+                cost = self.cost(graph, problem, pose, set, params);
+            }
+            info.ms_associate += ta.elapsed().as_secs_f64() * 1e3;
+            let prev = info.costs.last().copied().unwrap_or(info.cost_before);
+            info.costs.push(cost);
+            if step_norm < params.min_step || (prev - cost).abs() <= params.min_relative_decrease * prev.max(1e-30) {
+                break;
+            }
+        }
+        info.cost_after = cost;
+        info.data_terms = self.assoc.len()
+            + if set.data { problem.correspondences.len() } else { 0 }
+            + if set.data && problem.field.is_some() { problem.model.points.len() } else { 0 };
+        info.symbolic_builds = self.system.symbolic_builds - builds0;
+        info.ms_total = t0.elapsed().as_secs_f64() * 1e3;
+        Ok(info)
+    }
+}
+
+/// E_reg residual of directed edge (j, k).
+pub fn reg_residual(graph: &EdGraph, j: u32, k: u32) -> Vector3<f64> {
+    let g = graph.nodes();
+    let (gj, gk) = (g[j as usize], g[k as usize]);
+    let pk = &graph.warp[k as usize];
+    apply_node(&graph.warp[j as usize], &gj, &gk) - gk - Vector3::new(pk[3], pk[7], pk[11])
+}
+
+/// A rigid transform as a node warp about `g`: A = R, t = R g + t - g, so the node maps v to R v + t.
+pub fn rigid_warp(rotation: &Rotation3<f64>, t: &Vector3<f64>, g: &Vector3<f64>) -> [f64; 12] {
+    let m = rotation.matrix();
+    let tj = rotation * g + t - g;
+    [m[(0, 0)], m[(0, 1)], m[(0, 2)], tj.x, m[(1, 0)], m[(1, 1)], m[(1, 2)], tj.y, m[(2, 0)], m[(2, 1)], m[(2, 2)], tj.z]
+}

@@ -1,0 +1,99 @@
+//! Constructed scenes for the solver tests: a sheet of tissue seen by a camera, deformed by known
+//! fields and rendered into exact vertex and normal maps by the phantom's rasteriser.
+#![allow(dead_code)]
+
+use misslam_deformation_ed::{Intrinsics, Scan};
+use misslam_framework::nalgebra::{Isometry3, Vector3};
+use misslam_source_phantom::render::{rasterize, scan_maps, Raster, View};
+
+pub const W: u32 = 160;
+pub const H: u32 = 120;
+
+pub fn intrinsics() -> Intrinsics {
+    Intrinsics { fx: 150.0, fy: 150.0, cx: 79.5, cy: 59.5, width: W, height: H }
+}
+
+/// A (nx x ny) grid sheet with `step` mm spacing, centred on x, y = 0 at depth z0, and its triangles.
+pub fn sheet(nx: usize, ny: usize, step: f64, z0: f64) -> (Vec<Vector3<f64>>, Vec<[u32; 3]>) {
+    let mut v = Vec::new();
+    for y in 0..ny {
+        for x in 0..nx {
+            v.push(Vector3::new(
+                (x as f64 - (nx - 1) as f64 / 2.0) * step,
+                (y as f64 - (ny - 1) as f64 / 2.0) * step,
+                z0 + 0.02 * ((x as f64) * step).powi(2) / 10.0,
+            ));
+        }
+    }
+    let mut t = Vec::new();
+    for y in 0..ny - 1 {
+        for x in 0..nx - 1 {
+            let i = (y * nx + x) as u32;
+            let n = nx as u32;
+            t.push([i, i + 1, i + n + 1]);
+            t.push([i, i + n + 1, i + n]);
+        }
+    }
+    (v, t)
+}
+
+/// Unit normals of a mesh (area-weighted), turned towards the origin (the camera).
+pub fn vertex_normals(v: &[Vector3<f64>], t: &[[u32; 3]]) -> Vec<Vector3<f64>> {
+    let mut n = vec![Vector3::zeros(); v.len()];
+    for tri in t {
+        let (a, b, c) = (v[tri[0] as usize], v[tri[1] as usize], v[tri[2] as usize]);
+        let f = (b - a).cross(&(c - a));
+        for &i in tri {
+            n[i as usize] += f;
+        }
+    }
+    n.iter()
+        .zip(v)
+        .map(|(x, p)| {
+            let u = x.normalize();
+            if u.dot(p) > 0.0 {
+                -u
+            } else {
+                u
+            }
+        })
+        .collect()
+}
+
+/// Renders world-frame vertices seen from `world_from_camera` into scan maps (camera frame).
+pub fn render(v: &[Vector3<f64>], t: &[[u32; 3]], world_from_camera: &Isometry3<f64>) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
+    let k = intrinsics();
+    let view = View {
+        fx: k.fx as f32,
+        fy: k.fy as f32,
+        cx: k.cx as f32,
+        cy: k.cy as f32,
+        width: W,
+        height: H,
+        camera_from_world: world_from_camera.inverse().cast::<f32>(),
+    };
+    let verts: Vec<[f32; 3]> = v.iter().map(|p| [p.x as f32, p.y as f32, p.z as f32]).collect();
+    let mut r = Raster::default();
+    let mut cam = Vec::new();
+    rasterize(&view, &verts, t, &mut cam, &mut r);
+    scan_maps(&view, &r, &cam, t)
+}
+
+pub fn scan<'a>(maps: &'a (Vec<[f32; 3]>, Vec<[f32; 3]>)) -> Scan<'a> {
+    Scan { intrinsics: intrinsics(), vertices: &maps.0, normals: &maps.1 }
+}
+
+/// Mean and max distance between two point lists.
+pub fn errors(a: &[Vector3<f64>], b: &[Vector3<f64>]) -> (f64, f64) {
+    let d: Vec<f64> = a.iter().zip(b).map(|(x, y)| (x - y).norm()).collect();
+    (d.iter().sum::<f64>() / d.len() as f64, d.iter().cloned().fold(0.0, f64::max))
+}
+
+/// Deterministic uniform numbers in [-1, 1].
+pub struct Lcg(pub u64);
+impl Lcg {
+    pub fn next(&mut self) -> f64 {
+        self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        ((self.0 >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
+    }
+}
