@@ -23,6 +23,7 @@ pub const BUILTIN: &[RegisterFn] = &[
     misslam_eval_depth::register,
     misslam_eval_recon::register,
     misslam_eval_tracking::register,
+    misslam_deformation_ed::node::register,
 ];
 
 /// Every built-in plugin; an id clash is an error naming both.

@@ -7,6 +7,8 @@ pub mod decoupled;
 pub mod field;
 pub mod graph;
 pub mod knn;
+pub mod node;
+pub mod observe;
 pub mod problem;
 pub mod solver;
 pub mod system;

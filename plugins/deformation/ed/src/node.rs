@@ -1,0 +1,359 @@
+//! The `deformation.batch` and `deformation.decoupled` nodes: per frame, lift the depth to a scan,
+//! select the visible model points, solve the ED warp (all nodes, or PR then PI), and output the
+//! deformed model, the graph and the solve's figures.
+//!
+//! The model is the `template` mesh of the first frame (template path), or, when none is connected,
+//! the first depth map lifted to the world frame (one point per `model_stride` pixels). Nodes are
+//! sampled on it once; growth belongs to fusion.
+
+use crate::decoupled::{DecoupledParams, DecoupledSolver};
+use crate::graph::{Binding, EdGraph, GraphParams};
+use crate::observe::{scan_from_depth, visible_points};
+use crate::problem::{Intrinsics, ModelPoints, Problem, Scan, SolverParams};
+use crate::solver::{Info, SolveSet, Solver};
+use misslam_framework::nalgebra::{Isometry3, Point3, Vector3};
+use misslam_framework::{
+    BuildContext, BuildError, DeformationGraph, DepthMap, Flow, FrameInfo, Inputs, Mesh, Metrics, Node, NodeContext,
+    NodeError, NodeResult, Outputs, PointCloud, Pose, PortSpec, PortType, Registry, TrackingState, TypedPlugin,
+};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+/// Parameters of `deformation.batch`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct BatchParams {
+    /// Deformation graph: spacing (mm), neighbours, sampling.
+    pub graph: GraphParams,
+    /// Energy weights and solver options.
+    pub solver: SolverParams,
+    /// Without a template, the model is one point per `model_stride` x `model_stride` pixels of the
+    /// first depth map.
+    pub model_stride: u32,
+    /// Depth step (mm) to a neighbour above which a pixel gets no normal (occlusion edge).
+    pub normal_max_step_mm: f32,
+    /// epsilon_dv: a model point is visible when the scan point it projects to is this close, mm.
+    pub visible_distance_mm: f64,
+    /// epsilon_nv: and its normal within this angle of the scan's, degrees.
+    pub visible_angle_deg: f64,
+}
+
+impl Default for BatchParams {
+    fn default() -> Self {
+        BatchParams {
+            graph: GraphParams::default(),
+            solver: SolverParams::default(),
+            model_stride: 4,
+            normal_max_step_mm: 3.0,
+            visible_distance_mm: 5.0,
+            visible_angle_deg: 60.0,
+        }
+    }
+}
+
+/// Parameters of `deformation.decoupled`: those of the batch solver plus the split.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct DecoupledNodeParams {
+    /// Deformation graph: spacing (mm), neighbours, sampling.
+    pub graph: GraphParams,
+    /// Energy weights and solver options (level I; level II uses them without data terms).
+    pub solver: SolverParams,
+    /// The two-step split: boundary edges, level II rings and iterations.
+    pub decoupled: DecoupledParams,
+    /// As in `deformation.batch`.
+    pub model_stride: u32,
+    /// As in `deformation.batch`.
+    pub normal_max_step_mm: f32,
+    /// As in `deformation.batch`.
+    pub visible_distance_mm: f64,
+    /// As in `deformation.batch`.
+    pub visible_angle_deg: f64,
+}
+
+impl Default for DecoupledNodeParams {
+    fn default() -> Self {
+        let b = BatchParams::default();
+        DecoupledNodeParams {
+            graph: b.graph,
+            solver: b.solver,
+            decoupled: DecoupledParams::default(),
+            model_stride: b.model_stride,
+            normal_max_step_mm: b.normal_max_step_mm,
+            visible_distance_mm: b.visible_distance_mm,
+            visible_angle_deg: b.visible_angle_deg,
+        }
+    }
+}
+
+enum Engine {
+    Batch(Solver),
+    Decoupled(DecoupledSolver, DecoupledParams),
+}
+
+struct Model {
+    points: Vec<Vector3<f64>>,
+    normals: Vec<Vector3<f64>>,
+    bindings: Vec<Binding>,
+    triangles: Vec<[u32; 3]>,
+    graph: EdGraph,
+}
+
+/// The node behind both plugin ids.
+pub struct EdNode {
+    common: BatchParams,
+    engine: Engine,
+    model: Option<Model>,
+}
+
+fn param_err(path: &str, message: String) -> BuildError {
+    BuildError::Param { key: Some(path.split('.').next().unwrap_or(path).to_owned()), path: path.to_owned(), message }
+}
+
+fn check(p: &BatchParams) -> Result<(), BuildError> {
+    p.graph.validate().map_err(|m| param_err("graph", m))?;
+    p.solver.validate().map_err(|m| param_err("solver", m))?;
+    if p.model_stride == 0 {
+        return Err(param_err("model_stride", "must be at least 1".into()));
+    }
+    if !(p.normal_max_step_mm > 0.0) {
+        return Err(param_err("normal_max_step_mm", "must be positive".into()));
+    }
+    if !(p.visible_distance_mm > 0.0) {
+        return Err(param_err("visible_distance_mm", "must be positive".into()));
+    }
+    if !(p.visible_angle_deg > 0.0 && p.visible_angle_deg <= 180.0) {
+        return Err(param_err("visible_angle_deg", "must be in (0, 180]".into()));
+    }
+    Ok(())
+}
+
+fn intrinsics(d: &DepthMap) -> Intrinsics {
+    Intrinsics { fx: d.calib.fx, fy: d.calib.fy, cx: d.calib.cx, cy: d.calib.cy, width: d.map.width, height: d.map.height }
+}
+
+/// Area-weighted vertex normals of a mesh (unit; zero-area fans get NaN).
+fn mesh_normals(v: &[Vector3<f64>], t: &[[u32; 3]]) -> Vec<Vector3<f64>> {
+    let mut n = vec![Vector3::zeros(); v.len()];
+    for tri in t {
+        let (a, b, c) = (v[tri[0] as usize], v[tri[1] as usize], v[tri[2] as usize]);
+        let f = (b - a).cross(&(c - a));
+        for &i in tri {
+            n[i as usize] += f;
+        }
+    }
+    n.iter().map(|x| x.try_normalize(1e-12).unwrap_or(Vector3::repeat(f64::NAN))).collect()
+}
+
+impl EdNode {
+    fn init_model(
+        &self,
+        template: Option<&Mesh>,
+        depth: &DepthMap,
+        scan: &(Vec<[f32; 3]>, Vec<[f32; 3]>),
+        pose: &Isometry3<f64>,
+    ) -> Result<Model, String> {
+        let (points, normals, triangles) = if let Some(mesh) = template {
+            if let Some(t) = mesh.triangles.iter().find(|t| t.iter().any(|&i| i as usize >= mesh.vertices.len())) {
+                return Err(format!("template triangle {t:?} indexes past its {} vertices", mesh.vertices.len()));
+            }
+            let v: Vec<Vector3<f64>> =
+                mesh.vertices.iter().map(|p| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64)).collect();
+            if v.iter().any(|p| !p.iter().all(|c| c.is_finite())) {
+                return Err("the template has non-finite vertices".into());
+            }
+            let n = match &mesh.normals {
+                Some(n) if n.len() == v.len() => n.iter().map(|p| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64)).collect(),
+                _ => mesh_normals(&v, &mesh.triangles),
+            };
+            (v, n, mesh.triangles.clone())
+        } else {
+            let (w, h) = (depth.map.width as usize, depth.map.height as usize);
+            let s = self.common.model_stride as usize;
+            let mut v = Vec::new();
+            let mut n = Vec::new();
+            for y in (0..h).step_by(s) {
+                for x in (0..w).step_by(s) {
+                    let i = y * w + x;
+                    let (p, q) = (scan.0[i], scan.1[i]);
+                    if p.iter().chain(&q).all(|c| c.is_finite()) {
+                        v.push((pose * Point3::new(p[0] as f64, p[1] as f64, p[2] as f64)).coords);
+                        n.push(pose.rotation * Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64));
+                    }
+                }
+            }
+            if v.is_empty() {
+                return Err("the first depth map has no valid pixel with a normal to build the model from".into());
+            }
+            (v, n, Vec::new())
+        };
+        let graph = EdGraph::from_points(&points, self.common.graph.clone())?;
+        let bindings = graph.bind_all(&points);
+        Ok(Model { points, normals, bindings, triangles, graph })
+    }
+}
+
+impl Node for EdNode {
+    fn process(&mut self, _: &mut NodeContext, frame: FrameInfo, inputs: &Inputs, outputs: &mut Outputs) -> NodeResult<Flow> {
+        let depth = inputs.get::<DepthMap>("depth")?;
+        let k = intrinsics(depth);
+        if depth.map.data.len() != (k.width * k.height) as usize {
+            return Err(NodeError::msg(format!(
+                "depth map of frame {} has {} values for {}x{} pixels",
+                frame.index,
+                depth.map.data.len(),
+                k.width,
+                k.height
+            )));
+        }
+        let prior = inputs.opt::<Pose>("pose")?;
+        if let Some(p) = prior {
+            if p.state == TrackingState::Lost {
+                tracing::warn!(frame = frame.index, "tracking lost: the deformation uses the last pose as its prior");
+            }
+        }
+        let prior_pose = prior.map_or(Isometry3::identity(), |p| p.world_from_camera);
+        let scan = scan_from_depth(&depth.map.data, &k, self.common.normal_max_step_mm);
+        if self.model.is_none() {
+            let template = inputs.opt::<Mesh>("template")?;
+            let m = self.init_model(template.map(|a| a.as_ref()), depth, &scan, &prior_pose).map_err(NodeError::msg)?;
+            self.model = Some(m);
+        }
+        let c = &self.common;
+        let Some(model) = self.model.as_mut() else { return Err(NodeError::msg("no model")) };
+        let visible = visible_points(
+            &model.graph,
+            &model.points,
+            &model.normals,
+            &model.bindings,
+            &prior_pose,
+            &k,
+            &scan.0,
+            &scan.1,
+            c.visible_distance_mm,
+            c.visible_angle_deg,
+        );
+        let lp: Vec<Vector3<f64>> = visible.iter().map(|&i| model.points[i as usize]).collect();
+        let ln: Vec<Vector3<f64>> = visible.iter().map(|&i| model.normals[i as usize]).collect();
+        let lb: Vec<Binding> = visible.iter().map(|&i| model.bindings[i as usize]).collect();
+        let problem = Problem {
+            model: ModelPoints { points: &lp, normals: &ln, bindings: &lb },
+            scan: Some(Scan { intrinsics: k, vertices: &scan.0, normals: &scan.1 }),
+            field: None,
+            correspondences: &[],
+            pose_prior: prior_pose,
+        };
+        let mut pose = prior_pose;
+        let mut metrics = Metrics::default();
+        let info: Info = match &mut self.engine {
+            Engine::Batch(s) => {
+                let set = SolveSet::all(&model.graph, c.solver.optimize_pose);
+                s.solve(&mut model.graph, &mut pose, &problem, &set, &c.solver).map_err(NodeError::msg)?
+            }
+            Engine::Decoupled(s, dp) => {
+                let d = s.solve(&mut model.graph, &mut pose, &problem, &c.solver, dp).map_err(NodeError::msg)?;
+                metrics.values.insert("pr_nodes".into(), d.pr_nodes as f64);
+                metrics.values.insert("pi_solved".into(), d.pi_solved as f64);
+                d.combined()
+            }
+        };
+        if model.graph.warp.iter().flatten().any(|x| !x.is_finite()) {
+            model.graph.reset();
+            return Err(NodeError::msg(format!("the deformation solve of frame {} diverged; the warp was reset", frame.index)));
+        }
+        for (k, v) in [
+            ("iterations", info.iterations as f64),
+            ("cost_before", info.cost_before),
+            ("cost_after", info.cost_after),
+            ("solved_nodes", info.solved_nodes as f64),
+            ("total_nodes", model.graph.len() as f64),
+            ("visible_points", visible.len() as f64),
+            ("data_terms", info.data_terms as f64),
+            ("solve_ms", info.ms_total),
+        ] {
+            metrics.values.insert(k.into(), v);
+        }
+        for (i, cst) in info.costs.iter().enumerate() {
+            metrics.values.insert(format!("cost_it{i}"), *cst);
+        }
+        let (mut dp, mut dn) = (Vec::new(), Vec::new());
+        model.graph.deform(&model.points, Some(&model.normals), &model.bindings, &mut dp, &mut dn);
+        let f3 = |v: &Vector3<f64>| [v.x as f32, v.y as f32, v.z as f32];
+        outputs.put(
+            "mesh",
+            Mesh {
+                vertices: dp.iter().map(f3).collect(),
+                normals: Some(dn.iter().map(f3).collect()),
+                colors: None,
+                triangles: model.triangles.clone(),
+            },
+        )?;
+        outputs.put("visible", PointCloud { positions: visible.iter().map(|&i| f3(&dp[i as usize])).collect(), colors: None })?;
+        let g = &model.graph;
+        outputs.put(
+            "graph",
+            DeformationGraph {
+                nodes: g.nodes().iter().map(f3).collect(),
+                affines: g.warp.iter().map(|p| [p[0], p[1], p[2], p[4], p[5], p[6], p[8], p[9], p[10]].map(|x| x as f32)).collect(),
+                translations: g.warp.iter().map(|p| [p[3] as f32, p[7] as f32, p[11] as f32]).collect(),
+                edges: g.edges().map(|(a, b)| [a, b]).collect(),
+            },
+        )?;
+        outputs.put(
+            "pose",
+            Pose { world_from_camera: pose, state: prior.map_or(TrackingState::Tracking, |p| p.state) },
+        )?;
+        outputs.put("info", metrics)?;
+        Ok(Flow::Continue)
+    }
+}
+
+fn inputs() -> Vec<PortSpec> {
+    vec![
+        PortSpec::new("depth", PortType::Depth, "the live depth (left camera), lifted to vertex and normal maps"),
+        PortSpec::optional("pose", PortType::Pose, "world_from_camera from the rigid tracker (prior and start); identity if absent"),
+        PortSpec::optional("template", PortType::Mesh, "the model to deform, world frame, read on the first frame only"),
+    ]
+}
+
+fn outputs() -> Vec<PortSpec> {
+    vec![
+        PortSpec::new("mesh", PortType::Mesh, "the deformed model, world frame (the template's triangles, if any)"),
+        PortSpec::new("visible", PortType::PointCloud, "the deformed visible points V^n that fed the data term"),
+        PortSpec::new("graph", PortType::DeformationGraph, "nodes, their warps and edges"),
+        PortSpec::new("pose", PortType::Pose, "the camera pose after the solve (the prior unless solver.optimize_pose)"),
+        PortSpec::new("info", PortType::Metrics, "iterations, cost before/after and per iteration, nodes solved, ms"),
+    ]
+}
+
+/// Registers `deformation.batch` and `deformation.decoupled`.
+pub fn register(registry: &mut Registry) -> Result<(), String> {
+    registry.register(TypedPlugin::new(
+        "deformation.batch",
+        "embedded deformation: Gauss-Newton / LM over all nodes, block-sparse Cholesky (faer)",
+        inputs(),
+        outputs(),
+        |p: BatchParams, _: &BuildContext| {
+            check(&p)?;
+            Ok(EdNode { common: p, engine: Engine::Batch(Solver::default()), model: None })
+        },
+    ))?;
+    registry.register(TypedPlugin::new(
+        "deformation.decoupled",
+        "embedded deformation, two-step: seen (PR) nodes with the data, then unseen (PI) nodes as rigidly as possible",
+        inputs(),
+        outputs(),
+        |p: DecoupledNodeParams, _: &BuildContext| {
+            let common = BatchParams {
+                graph: p.graph,
+                solver: p.solver,
+                model_stride: p.model_stride,
+                normal_max_step_mm: p.normal_max_step_mm,
+                visible_distance_mm: p.visible_distance_mm,
+                visible_angle_deg: p.visible_angle_deg,
+            };
+            check(&common)?;
+            Ok(EdNode { common, engine: Engine::Decoupled(DecoupledSolver::default(), p.decoupled), model: None })
+        },
+    ))
+}

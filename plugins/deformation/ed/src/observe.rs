@@ -1,0 +1,127 @@
+//! Turning a depth map into the scan the data term reads (vertex and normal maps), and selecting
+//! the visible model points V^n (method.md 5.1: they project inside the image onto valid depth
+//! within epsilon_dv and with normals within epsilon_nv).
+
+use crate::graph::{Binding, EdGraph};
+use crate::problem::Intrinsics;
+use misslam_framework::nalgebra::{Isometry3, Point3, Vector3};
+use rayon::prelude::*;
+
+/// Lifts depth (mm, NaN invalid, row-major) to camera-frame vertices and normals. A normal is the
+/// cross product of central differences, turned towards the camera; it is NaN when a neighbour is
+/// invalid or a depth step to a neighbour exceeds `max_step_mm` (an occlusion edge).
+pub fn scan_from_depth(depth: &[f32], k: &Intrinsics, max_step_mm: f32) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
+    let (w, h) = (k.width as usize, k.height as usize);
+    let nan = [f32::NAN; 3];
+    let lift = |i: usize| -> [f32; 3] {
+        let z = depth[i];
+        if !(z.is_finite() && z > 0.0) {
+            return nan;
+        }
+        let (u, v) = ((i % w) as f64, (i / w) as f64);
+        [((u - k.cx) / k.fx * z as f64) as f32, ((v - k.cy) / k.fy * z as f64) as f32, z]
+    };
+    let vertices: Vec<[f32; 3]> = (0..w * h).into_par_iter().map(lift).collect();
+    let normals: Vec<[f32; 3]> = (0..w * h)
+        .into_par_iter()
+        .map(|i| {
+            let (x, y) = (i % w, i / w);
+            if x == 0 || y == 0 || x + 1 >= w || y + 1 >= h || !vertices[i][2].is_finite() {
+                return nan;
+            }
+            let (l, r, u, d) = (vertices[i - 1], vertices[i + 1], vertices[i - w], vertices[i + w]);
+            let z = vertices[i][2];
+            if [l, r, u, d].iter().any(|p| !p[2].is_finite() || (p[2] - z).abs() > max_step_mm) {
+                return nan;
+            }
+            let a = [r[0] - l[0], r[1] - l[1], r[2] - l[2]];
+            let b = [d[0] - u[0], d[1] - u[1], d[2] - u[2]];
+            let n = [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+            let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+            if !(len > 0.0) {
+                return nan;
+            }
+            let p = vertices[i];
+            let s = if n[0] * p[0] + n[1] * p[1] + n[2] * p[2] > 0.0 { -1.0 / len } else { 1.0 / len };
+            n.map(|c| c * s)
+        })
+        .collect();
+    (vertices, normals)
+}
+
+/// Indices of the model points visible in the scan: the warped point projects inside the image
+/// onto a valid vertex within `max_distance_mm` of it, and the warped normal is within
+/// `max_angle_deg` of the scan's normal (and faces the camera).
+#[allow(clippy::too_many_arguments)]
+pub fn visible_points(
+    graph: &EdGraph,
+    points: &[Vector3<f64>],
+    normals: &[Vector3<f64>],
+    bindings: &[Binding],
+    world_from_camera: &Isometry3<f64>,
+    k: &Intrinsics,
+    vertices: &[[f32; 3]],
+    scan_normals: &[[f32; 3]],
+    max_distance_mm: f64,
+    max_angle_deg: f64,
+) -> Vec<u32> {
+    let cfw = world_from_camera.inverse();
+    let rot = cfw.rotation.to_rotation_matrix();
+    let nm = graph.normal_matrices();
+    let cos_max = max_angle_deg.to_radians().cos();
+    let (w, h) = (k.width as usize, k.height as usize);
+    (0..points.len() as u32)
+        .into_par_iter()
+        .filter(|&i| {
+            let i = i as usize;
+            let p = cfw * Point3::from(graph.warp_point(&points[i], &bindings[i]));
+            if !(p.z > 1e-6) {
+                return false;
+            }
+            let u = (k.fx * p.x / p.z + k.cx).round();
+            let v = (k.fy * p.y / p.z + k.cy).round();
+            if !(u >= 0.0 && v >= 0.0 && (u as usize) < w && (v as usize) < h) {
+                return false;
+            }
+            let idx = v as usize * w + u as usize;
+            let (q, n) = (vertices[idx], scan_normals[idx]);
+            if !q.iter().chain(&n).all(|c| c.is_finite()) {
+                return false;
+            }
+            let q = Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64);
+            if (p.coords - q).norm() > max_distance_mm {
+                return false;
+            }
+            let nc = rot * graph.warp_normal(&normals[i], &bindings[i], &nm);
+            nc.dot(&Vector3::new(n[0] as f64, n[1] as f64, n[2] as f64)) >= cos_max
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_tilted_plane_gives_its_points_and_normal_and_edges_are_invalid() {
+        let k = Intrinsics { fx: 100.0, fy: 100.0, cx: 10.0, cy: 8.0, width: 21, height: 17 };
+        // Plane z = 50 + 0.5 x: depth at pixel u solves z = 50 + 0.5 (u - cx) z / fx.
+        let mut depth = vec![0f32; 21 * 17];
+        for (i, d) in depth.iter_mut().enumerate() {
+            let u = (i % 21) as f64;
+            *d = (50.0 / (1.0 - 0.5 * (u - 10.0) / 100.0)) as f32;
+        }
+        depth[5 * 21 + 5] = f32::NAN;
+        let (v, n) = scan_from_depth(&depth, &k, 5.0);
+        let expect = Vector3::new(0.5, 0.0, -1.0).normalize();
+        let i = 8 * 21 + 12;
+        let got = Vector3::new(n[i][0] as f64, n[i][1] as f64, n[i][2] as f64);
+        assert!((got - expect).norm() < 1e-4, "{got:?}");
+        assert!((v[i][2] as f64 - 50.0 - 0.5 * v[i][0] as f64).abs() < 1e-3);
+        // Borders, the invalid pixel and its four neighbours have no normal.
+        for j in [0, 20, 5 * 21 + 5, 5 * 21 + 4, 4 * 21 + 5] {
+            assert!(n[j][0].is_nan(), "pixel {j}");
+        }
+        assert!(v[5 * 21 + 4][0].is_finite());
+    }
+}
