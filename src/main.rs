@@ -136,6 +136,25 @@ enum BenchCommand {
         #[arg(long)]
         out: Option<PathBuf>,
     },
+    /// The thesis's Fig. 5.9: a map that grows every frame while the camera sees a bounded region;
+    /// per frame, batch and decoupled ED: nodes, nodes solved, ms, mean error against GT (mm).
+    EdScaling {
+        /// Frames (the map grows from about 1,000 nodes by about 300 per frame at the defaults).
+        #[arg(long, default_value_t = 30)]
+        frames: usize,
+        /// Camera advance per frame, mm.
+        #[arg(long, default_value_t = 110.0)]
+        advance_mm: f64,
+        /// Node spacing, mm.
+        #[arg(long, default_value_t = 5.0)]
+        spacing_mm: f64,
+        /// Solver iterations per frame.
+        #[arg(long, default_value_t = 3)]
+        iterations: usize,
+        /// Write the rows as JSON here (fields documented in ARCHITECTURE.md, "Benchmarks").
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// The scheduler's own cost per node per frame (budget: 50 us), on trivial nodes.
     RuntimeOverhead {
         /// Pass-through nodes per graph.
@@ -200,6 +219,56 @@ fn run(command: Command) -> anyhow::Result<()> {
                     r.frames,
                     r.ms_per_frame,
                     r.fps
+                );
+            }
+            if let Some(path) = out {
+                std::fs::write(&path, serde_json::to_string_pretty(&rows)?)
+                    .with_context(|| format!("writing {}", path.display()))?;
+            }
+            Ok(())
+        }
+        Command::Bench {
+            which:
+                BenchCommand::EdScaling {
+                    frames,
+                    advance_mm,
+                    spacing_mm,
+                    iterations,
+                    out,
+                },
+        } => {
+            let p = misslam::bench::EdScalingParams {
+                frames,
+                advance_mm,
+                spacing_mm,
+                iterations,
+                ..Default::default()
+            };
+            let rows = misslam::bench::ed_scaling(&p).map_err(anyhow::Error::msg)?;
+            println!(
+                "{:>5} {:>7} {:>7} {:>8} {:>9} {:>9} {:>8} {:>9} {:>9}",
+                "frame",
+                "nodes",
+                "visible",
+                "batch n",
+                "batch ms",
+                "batch mm",
+                "dec n",
+                "dec ms",
+                "dec mm"
+            );
+            for r in &rows {
+                println!(
+                    "{:>5} {:>7} {:>7} {:>8} {:>9.1} {:>9.3} {:>8} {:>9.1} {:>9.3}",
+                    r.frame,
+                    r.total_nodes,
+                    r.visible_points,
+                    r.batch_solved,
+                    r.batch_ms,
+                    r.batch_err_mm,
+                    r.decoupled_solved,
+                    r.decoupled_ms,
+                    r.decoupled_err_mm
                 );
             }
             if let Some(path) = out {

@@ -44,7 +44,11 @@ pub struct DecoupledParams {
 
 impl Default for DecoupledParams {
     fn default() -> Self {
-        DecoupledParams { boundary: Boundary::Cut, level2_rings: 3, level2_iterations: 2 }
+        DecoupledParams {
+            boundary: Boundary::Cut,
+            level2_rings: 3,
+            level2_iterations: 2,
+        }
     }
 }
 
@@ -86,12 +90,17 @@ impl DecoupledInfo {
 pub struct DecoupledSolver {
     level1: Solver,
     level2: Solver,
+    last: DecoupledInfo,
 }
 
 /// PR nodes: those any data point (model point or correspondence) is bound to with a weight > 0.
 pub fn relevant_nodes(graph: &EdGraph, problem: &Problem) -> Vec<bool> {
     let mut pr = vec![false; graph.len()];
-    let bindings = problem.model.bindings.iter().chain(problem.correspondences.iter().map(|c| &c.binding));
+    let bindings = problem
+        .model
+        .bindings
+        .iter()
+        .chain(problem.correspondences.iter().map(|c| &c.binding));
     for b in bindings {
         for (j, w) in b.iter() {
             if w > 0.0 {
@@ -106,6 +115,11 @@ impl DecoupledSolver {
     /// Symbolic factorisations computed by (level I, level II).
     pub fn symbolic_builds(&self) -> (usize, usize) {
         (self.level1.symbolic_builds(), self.level2.symbolic_builds())
+    }
+
+    /// What the last solve did.
+    pub fn solve_info(&self) -> &DecoupledInfo {
+        &self.last
     }
 
     /// Solves level I then level II, updating `graph.warp` and `pose`.
@@ -137,7 +151,12 @@ impl DecoupledSolver {
                 }
             }
         }
-        let set1 = SolveSet { free: free1, reg_edges: edges1, data: true, pose: params.optimize_pose };
+        let set1 = SolveSet {
+            free: free1,
+            reg_edges: edges1,
+            data: true,
+            pose: params.optimize_pose,
+        };
         let level1 = if set1.free.is_empty() {
             Info::default()
         } else {
@@ -164,8 +183,9 @@ impl DecoupledSolver {
             }
         }
         let all_pi = dparams.level2_rings == 0;
-        let free2: Vec<u32> =
-            (0..n as u32).filter(|&j| !pr[j as usize] && (all_pi || dist[j as usize] != u32::MAX)).collect();
+        let free2: Vec<u32> = (0..n as u32)
+            .filter(|&j| !pr[j as usize] && (all_pi || dist[j as usize] != u32::MAX))
+            .collect();
         let mut is_free2 = vec![false; n];
         for &j in &free2 {
             is_free2[j as usize] = true;
@@ -179,14 +199,30 @@ impl DecoupledSolver {
             }
         }
         let pi_solved = free2.len();
-        let set2 = SolveSet { free: free2, reg_edges: edges2, data: false, pose: false };
+        let set2 = SolveSet {
+            free: free2,
+            reg_edges: edges2,
+            data: false,
+            pose: false,
+        };
         let level2 = if set2.free.is_empty() {
             Info::default()
         } else {
-            let p2 = SolverParams { max_iterations: dparams.level2_iterations.max(1), optimize_pose: false, ..params.clone() };
+            let p2 = SolverParams {
+                max_iterations: dparams.level2_iterations.max(1),
+                optimize_pose: false,
+                ..params.clone()
+            };
             let mut fixed_pose = *pose;
-            self.level2.solve(graph, &mut fixed_pose, problem, &set2, &p2)?
+            self.level2
+                .solve(graph, &mut fixed_pose, problem, &set2, &p2)?
         };
-        Ok(DecoupledInfo { level1, level2, pr_nodes: set1.free.len(), pi_solved })
+        self.last = DecoupledInfo {
+            level1,
+            level2,
+            pr_nodes: set1.free.len(),
+            pi_solved,
+        };
+        Ok(self.last.clone())
     }
 }

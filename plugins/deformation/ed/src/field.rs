@@ -35,7 +35,9 @@ impl DistanceField {
         max_voxels: usize,
     ) -> Result<Self, String> {
         if !(voxel > 0.0 && truncation > 0.0) {
-            return Err(format!("voxel ({voxel}) and truncation ({truncation}) must be positive"));
+            return Err(format!(
+                "voxel ({voxel}) and truncation ({truncation}) must be positive"
+            ));
         }
         let mut pts = Vec::new();
         let mut nrm = Vec::new();
@@ -69,17 +71,26 @@ impl DistanceField {
         }
         let index = GridIndex::build(&pts, truncation.max(voxel));
         let mut values = vec![f32::NAN; total];
-        values.par_chunks_mut(dims[0]).enumerate().for_each(|(row, out)| {
-            let (y, z) = (row % dims[1], row / dims[1]);
-            for (x, v) in out.iter_mut().enumerate() {
-                let c = lo + Vector3::new(x as f64, y as f64, z as f64) * voxel;
-                if let Some((_, i)) = index.nearest_within(&pts, &c, truncation) {
-                    let d = nrm[i as usize].dot(&(c - pts[i as usize]));
-                    *v = d.clamp(-truncation, truncation) as f32;
+        values
+            .par_chunks_mut(dims[0])
+            .enumerate()
+            .for_each(|(row, out)| {
+                let (y, z) = (row % dims[1], row / dims[1]);
+                for (x, v) in out.iter_mut().enumerate() {
+                    let c = lo + Vector3::new(x as f64, y as f64, z as f64) * voxel;
+                    if let Some((_, i)) = index.nearest_within(&pts, &c, truncation) {
+                        let d = nrm[i as usize].dot(&(c - pts[i as usize]));
+                        *v = d.clamp(-truncation, truncation) as f32;
+                    }
                 }
-            }
-        });
-        Ok(DistanceField { origin: lo, voxel, dims, values, truncation })
+            });
+        Ok(DistanceField {
+            origin: lo,
+            voxel,
+            dims,
+            values,
+            truncation,
+        })
     }
 
     /// Trilinear value and gradient at `p`, or `None` outside the volume or next to unknown voxels.
@@ -88,7 +99,7 @@ impl DistanceField {
         let mut i = [0usize; 3];
         let mut f = [0f64; 3];
         for a in 0..3 {
-            if !(q[a] >= 0.0) || q[a] > (self.dims[a] - 1) as f64 {
+            if q[a].is_nan() || q[a] < 0.0 || q[a] > (self.dims[a] - 1) as f64 {
                 return None;
             }
             let fl = q[a].floor().min((self.dims[a].max(2) - 2) as f64);
@@ -116,8 +127,16 @@ impl DistanceField {
         let (fx, fy, fz) = (f[0], f[1], f[2]);
         let val = |c: &[[[f64; 2]; 2]; 2], fx: f64, fy: f64, fz: f64| {
             lerp(
-                lerp(lerp(c[0][0][0], c[0][0][1], fx), lerp(c[0][1][0], c[0][1][1], fx), fy),
-                lerp(lerp(c[1][0][0], c[1][0][1], fx), lerp(c[1][1][0], c[1][1][1], fx), fy),
+                lerp(
+                    lerp(c[0][0][0], c[0][0][1], fx),
+                    lerp(c[0][1][0], c[0][1][1], fx),
+                    fy,
+                ),
+                lerp(
+                    lerp(c[1][0][0], c[1][0][1], fx),
+                    lerp(c[1][1][0], c[1][1][1], fx),
+                    fy,
+                ),
                 fz,
             )
         };

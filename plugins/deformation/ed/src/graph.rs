@@ -51,7 +51,12 @@ pub struct GraphParams {
 
 impl Default for GraphParams {
     fn default() -> Self {
-        GraphParams { spacing: 8.0, node_neighbors: 6, point_neighbors: 4, sampling: Sampling::PoissonDisc }
+        GraphParams {
+            spacing: 8.0,
+            node_neighbors: 6,
+            point_neighbors: 4,
+            sampling: Sampling::PoissonDisc,
+        }
     }
 }
 
@@ -59,13 +64,22 @@ impl GraphParams {
     /// Checks ranges, naming the field.
     pub fn validate(&self) -> Result<(), String> {
         if !(self.spacing.is_finite() && self.spacing > 0.0) {
-            return Err(format!("spacing must be a positive number of mm, got {}", self.spacing));
+            return Err(format!(
+                "spacing must be a positive number of mm, got {}",
+                self.spacing
+            ));
         }
         if self.node_neighbors == 0 || self.node_neighbors > 32 {
-            return Err(format!("node_neighbors must be in 1..=32, got {}", self.node_neighbors));
+            return Err(format!(
+                "node_neighbors must be in 1..=32, got {}",
+                self.node_neighbors
+            ));
         }
         if self.point_neighbors == 0 || self.point_neighbors > MAX_K {
-            return Err(format!("point_neighbors must be in 1..={MAX_K}, got {}", self.point_neighbors));
+            return Err(format!(
+                "point_neighbors must be in 1..={MAX_K}, got {}",
+                self.point_neighbors
+            ));
         }
         Ok(())
     }
@@ -84,7 +98,11 @@ pub struct Binding {
 
 impl Binding {
     /// No node (the point does not move).
-    pub const EMPTY: Binding = Binding { nodes: [0; MAX_K], weights: [0.0; MAX_K], len: 0 };
+    pub const EMPTY: Binding = Binding {
+        nodes: [0; MAX_K],
+        weights: [0.0; MAX_K],
+        len: 0,
+    };
 
     /// (node, weight) pairs.
     pub fn iter(&self) -> impl Iterator<Item = (u32, f64)> + '_ {
@@ -179,7 +197,11 @@ impl EdGraph {
             .into_par_iter()
             .map_init(Vec::new, |buf, j| {
                 self.index.knn(&self.nodes, &self.nodes[j], k + 1, buf);
-                buf.iter().map(|e| e.1).filter(|&i| i as usize != j).take(k).collect()
+                buf.iter()
+                    .map(|e| e.1)
+                    .filter(|&i| i as usize != j)
+                    .take(k)
+                    .collect()
             })
             .collect();
         let mut neighbors = vec![Vec::new(); self.nodes.len()];
@@ -224,10 +246,11 @@ impl EdGraph {
 
     /// Undirected edges (j < k).
     pub fn edges(&self) -> impl Iterator<Item = (u32, u32)> + '_ {
-        self.neighbors
-            .iter()
-            .enumerate()
-            .flat_map(|(j, l)| l.iter().filter(move |&&k| k as usize > j).map(move |&k| (j as u32, k)))
+        self.neighbors.iter().enumerate().flat_map(|(j, l)| {
+            l.iter()
+                .filter(move |&&k| k as usize > j)
+                .map(move |&k| (j as u32, k))
+        })
     }
 
     /// Increments whenever nodes or edges change (solvers key their symbolic factorisations on it).
@@ -278,7 +301,13 @@ impl EdGraph {
 
     /// Binds many points (in parallel).
     pub fn bind_all(&self, points: &[Vector3<f64>]) -> Vec<Binding> {
-        points.par_iter().map_init(|| Vec::with_capacity(MAX_K + 1), |buf, v| self.bind_with(v, buf)).collect()
+        points
+            .par_iter()
+            .map_init(
+                || Vec::with_capacity(MAX_K + 1),
+                |buf, v| self.bind_with(v, buf),
+            )
+            .collect()
     }
 
     /// The warped position of canonical point `v` bound by `b`.
@@ -298,13 +327,23 @@ impl EdGraph {
     pub fn normal_matrices(&self) -> Vec<Matrix3<f64>> {
         self.warp
             .iter()
-            .map(|p| affine(p).try_inverse().map(|m| m.transpose()).unwrap_or_else(Matrix3::identity))
+            .map(|p| {
+                affine(p)
+                    .try_inverse()
+                    .map(|m| m.transpose())
+                    .unwrap_or_else(Matrix3::identity)
+            })
             .collect()
     }
 
     /// The warped unit normal of `n` bound by `b`, given [`Self::normal_matrices`].
     #[inline]
-    pub fn warp_normal(&self, n: &Vector3<f64>, b: &Binding, normal_matrices: &[Matrix3<f64>]) -> Vector3<f64> {
+    pub fn warp_normal(
+        &self,
+        n: &Vector3<f64>,
+        b: &Binding,
+        normal_matrices: &[Matrix3<f64>],
+    ) -> Vector3<f64> {
         if b.len == 0 {
             return *n;
         }
@@ -324,11 +363,19 @@ impl EdGraph {
         out_points: &mut Vec<Vector3<f64>>,
         out_normals: &mut Vec<Vector3<f64>>,
     ) {
-        points.par_iter().zip(bindings).map(|(v, b)| self.warp_point(v, b)).collect_into_vec(out_points);
+        points
+            .par_iter()
+            .zip(bindings)
+            .map(|(v, b)| self.warp_point(v, b))
+            .collect_into_vec(out_points);
         out_normals.clear();
         if let Some(normals) = normals {
             let m = self.normal_matrices();
-            normals.par_iter().zip(bindings).map(|(n, b)| self.warp_normal(n, b, &m)).collect_into_vec(out_normals);
+            normals
+                .par_iter()
+                .zip(bindings)
+                .map(|(n, b)| self.warp_normal(n, b, &m))
+                .collect_into_vec(out_normals);
         }
     }
 
@@ -340,13 +387,18 @@ impl EdGraph {
     }
 
     /// Adds nodes where points lie farther than the spacing from every node (Poisson disc over the
-    /// new points). A new node starts with the warp the current graph gives it (A interpolated,
-    /// t so that the node itself lands where the graph maps it), so growth does not move anything.
-    /// Returns the number of nodes added.
+    /// new points). A new node within two spacings of the existing graph starts with the warp the
+    /// graph gives it there (A interpolated, t so that the node lands where the graph maps it), so
+    /// growth at the edge of the map does not move anything. A node farther out starts with A = I
+    /// and the interpolated translation only: extrapolating the affine parts over a long distance
+    /// would amplify any rotation error by that distance. Returns the number of nodes added.
     pub fn grow(&mut self, points: &[Vector3<f64>]) -> usize {
         let eps = self.params.spacing;
-        let far: Vec<Vector3<f64>> =
-            points.iter().filter(|v| v.iter().all(|c| c.is_finite()) && self.nearest_node_distance(v) > eps).copied().collect();
+        let far: Vec<Vector3<f64>> = points
+            .iter()
+            .filter(|v| v.iter().all(|c| c.is_finite()) && self.nearest_node_distance(v) > eps)
+            .copied()
+            .collect();
         if far.is_empty() {
             return 0;
         }
@@ -358,17 +410,25 @@ impl EdGraph {
             .iter()
             .map(|g| {
                 let b = self.bind(g);
-                let mut p = [0.0; 12];
-                for (j, w) in b.iter() {
-                    for (a, x) in p.iter_mut().zip(&self.warp[j as usize]) {
-                        *a += w * x;
-                    }
-                }
                 if b.len == 0 {
                     return IDENTITY;
                 }
-                // t = warp(g) - g, the affine part interpolated.
-                let t = self.warp_point(g, &b) - g;
+                let near = self.nearest_node_distance(g) <= 2.0 * eps;
+                let mut p = if near { [0.0; 12] } else { IDENTITY };
+                let mut t = Vector3::zeros();
+                for (j, w) in b.iter() {
+                    let pj = &self.warp[j as usize];
+                    if near {
+                        for (a, x) in p.iter_mut().zip(pj) {
+                            *a += w * x;
+                        }
+                    }
+                    t += w * translation(pj);
+                }
+                if near {
+                    // t = warp(g) - g, the affine part interpolated.
+                    t = self.warp_point(g, &b) - g;
+                }
                 p[3] = t.x;
                 p[7] = t.y;
                 p[11] = t.z;
@@ -389,9 +449,14 @@ fn poisson_disc(points: &[Vector3<f64>], existing: &[Vector3<f64>], eps: f64) ->
     // the 5x5x5 block around it.
     let cell = eps / 3f64.sqrt();
     let key = |p: &Vector3<f64>| {
-        [(p.x / cell).floor() as i64, (p.y / cell).floor() as i64, (p.z / cell).floor() as i64]
+        [
+            (p.x / cell).floor() as i64,
+            (p.y / cell).floor() as i64,
+            (p.z / cell).floor() as i64,
+        ]
     };
-    let mut occupied: std::collections::HashMap<[i64; 3], Vec<u32>> = std::collections::HashMap::new();
+    let mut occupied: std::collections::HashMap<[i64; 3], Vec<u32>> =
+        std::collections::HashMap::new();
     let mut all: Vec<Vector3<f64>> = existing.to_vec();
     for (i, g) in existing.iter().enumerate() {
         occupied.entry(key(g)).or_default().push(i as u32);
@@ -408,7 +473,10 @@ fn poisson_disc(points: &[Vector3<f64>], existing: &[Vector3<f64>], eps: f64) ->
             for dy in -2..=2 {
                 for dx in -2..=2 {
                     if let Some(ids) = occupied.get(&[k[0] + dx, k[1] + dy, k[2] + dz]) {
-                        if ids.iter().any(|&i| (all[i as usize] - p).norm_squared() < eps2) {
+                        if ids
+                            .iter()
+                            .any(|&i| (all[i as usize] - p).norm_squared() < eps2)
+                        {
                             clear = false;
                             break 'search;
                         }
@@ -426,7 +494,13 @@ fn poisson_disc(points: &[Vector3<f64>], existing: &[Vector3<f64>], eps: f64) ->
 
 /// Per occupied voxel of side `eps`, the point nearest to the voxel's centroid of points.
 fn voxel_sample(points: &[Vector3<f64>], eps: f64) -> Vec<Vector3<f64>> {
-    let key = |p: &Vector3<f64>| [(p.x / eps).floor() as i64, (p.y / eps).floor() as i64, (p.z / eps).floor() as i64];
+    let key = |p: &Vector3<f64>| {
+        [
+            (p.x / eps).floor() as i64,
+            (p.y / eps).floor() as i64,
+            (p.z / eps).floor() as i64,
+        ]
+    };
     let mut sums: std::collections::BTreeMap<[i64; 3], (Vector3<f64>, usize)> = Default::default();
     for p in points.iter().filter(|p| p.iter().all(|c| c.is_finite())) {
         let e = sums.entry(key(p)).or_insert((Vector3::zeros(), 0));
@@ -454,7 +528,11 @@ mod tests {
         let mut v = Vec::new();
         for y in 0..n {
             for x in 0..n {
-                v.push(Vector3::new(x as f64 * step, y as f64 * step, 0.1 * (x as f64 * step).sin()));
+                v.push(Vector3::new(
+                    x as f64 * step,
+                    y as f64 * step,
+                    0.1 * (x as f64 * step).sin(),
+                ));
             }
         }
         v
@@ -463,7 +541,14 @@ mod tests {
     #[test]
     fn poisson_disc_nodes_are_spaced_and_cover_the_points() {
         let pts = sheet(60, 0.5);
-        let g = EdGraph::from_points(&pts, GraphParams { spacing: 4.0, ..Default::default() }).unwrap();
+        let g = EdGraph::from_points(
+            &pts,
+            GraphParams {
+                spacing: 4.0,
+                ..Default::default()
+            },
+        )
+        .unwrap();
         for (i, a) in g.nodes().iter().enumerate() {
             for b in &g.nodes()[i + 1..] {
                 assert!((a - b).norm() >= 4.0 - 1e-9);
@@ -485,15 +570,39 @@ mod tests {
     #[test]
     fn voxel_sampling_keeps_one_node_per_occupied_voxel() {
         let pts = sheet(40, 0.5); // 19.5 mm square
-        let g = EdGraph::from_points(&pts, GraphParams { spacing: 5.0, sampling: Sampling::Voxel, ..Default::default() })
-            .unwrap();
-        let mut keys: Vec<[i64; 3]> =
-            pts.iter().map(|p| [(p.x / 5.0).floor() as i64, (p.y / 5.0).floor() as i64, (p.z / 5.0).floor() as i64]).collect();
+        let g = EdGraph::from_points(
+            &pts,
+            GraphParams {
+                spacing: 5.0,
+                sampling: Sampling::Voxel,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        let mut keys: Vec<[i64; 3]> = pts
+            .iter()
+            .map(|p| {
+                [
+                    (p.x / 5.0).floor() as i64,
+                    (p.y / 5.0).floor() as i64,
+                    (p.z / 5.0).floor() as i64,
+                ]
+            })
+            .collect();
         keys.sort();
         keys.dedup();
         assert_eq!(g.len(), keys.len());
-        let mut node_keys: Vec<[i64; 3]> =
-            g.nodes().iter().map(|p| [(p.x / 5.0).floor() as i64, (p.y / 5.0).floor() as i64, (p.z / 5.0).floor() as i64]).collect();
+        let mut node_keys: Vec<[i64; 3]> = g
+            .nodes()
+            .iter()
+            .map(|p| {
+                [
+                    (p.x / 5.0).floor() as i64,
+                    (p.y / 5.0).floor() as i64,
+                    (p.z / 5.0).floor() as i64,
+                ]
+            })
+            .collect();
         node_keys.sort();
         assert_eq!(node_keys, keys);
     }
@@ -507,7 +616,14 @@ mod tests {
             Vector3::new(10.0, 10.0, 0.0),
             Vector3::new(20.0, 20.0, 0.0),
         ];
-        let g = EdGraph::from_nodes(nodes.clone(), GraphParams { point_neighbors: 4, ..Default::default() }).unwrap();
+        let g = EdGraph::from_nodes(
+            nodes.clone(),
+            GraphParams {
+                point_neighbors: 4,
+                ..Default::default()
+            },
+        )
+        .unwrap();
         let v = Vector3::new(2.0, 3.0, 0.0);
         let b = g.bind(&v);
         assert_eq!(b.len, 4);
@@ -527,7 +643,14 @@ mod tests {
     #[test]
     fn a_rigid_motion_of_all_nodes_moves_points_and_normals_rigidly() {
         let pts = sheet(30, 1.0);
-        let mut g = EdGraph::from_points(&pts, GraphParams { spacing: 6.0, ..Default::default() }).unwrap();
+        let mut g = EdGraph::from_points(
+            &pts,
+            GraphParams {
+                spacing: 6.0,
+                ..Default::default()
+            },
+        )
+        .unwrap();
         let r = misslam_framework::nalgebra::Rotation3::from_euler_angles(0.2, -0.1, 0.3);
         let t = Vector3::new(3.0, -2.0, 5.0);
         for j in 0..g.len() {
@@ -536,8 +659,18 @@ mod tests {
             let tj = r * gj + t - gj;
             let m = r.matrix();
             g.warp[j] = [
-                m[(0, 0)], m[(0, 1)], m[(0, 2)], tj.x, m[(1, 0)], m[(1, 1)], m[(1, 2)], tj.y, m[(2, 0)], m[(2, 1)],
-                m[(2, 2)], tj.z,
+                m[(0, 0)],
+                m[(0, 1)],
+                m[(0, 2)],
+                tj.x,
+                m[(1, 0)],
+                m[(1, 1)],
+                m[(1, 2)],
+                tj.y,
+                m[(2, 0)],
+                m[(2, 1)],
+                m[(2, 2)],
+                tj.z,
             ];
         }
         let b = g.bind_all(&pts);
@@ -553,7 +686,14 @@ mod tests {
     #[test]
     fn growth_adds_nodes_only_where_needed_and_does_not_move_anything() {
         let pts = sheet(20, 1.0);
-        let mut g = EdGraph::from_points(&pts, GraphParams { spacing: 5.0, ..Default::default() }).unwrap();
+        let mut g = EdGraph::from_points(
+            &pts,
+            GraphParams {
+                spacing: 5.0,
+                ..Default::default()
+            },
+        )
+        .unwrap();
         // Deform with a smooth field first.
         for j in 0..g.len() {
             let gj = g.nodes()[j];
@@ -563,7 +703,9 @@ mod tests {
         let n0 = g.len();
         assert_eq!(g.grow(&pts), 0);
         let v0 = g.topology_version();
-        let more: Vec<Vector3<f64>> = (0..20).map(|i| Vector3::new(25.0 + i as f64, 5.0, 0.0)).collect();
+        let more: Vec<Vector3<f64>> = (0..20)
+            .map(|i| Vector3::new(25.0 + i as f64, 5.0, 0.0))
+            .collect();
         let probe = Vector3::new(26.0, 5.0, 0.0);
         let before = g.warp_point(&probe, &g.bind(&probe));
         let added = g.grow(&more);

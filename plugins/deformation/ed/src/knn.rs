@@ -17,7 +17,11 @@ pub struct GridIndex {
 impl GridIndex {
     /// Buckets `points` in cells of side `cell` (mm). Non-finite points are left out.
     pub fn build(points: &[Vector3<f64>], cell: f64) -> Self {
-        let cell = if cell.is_finite() && cell > 0.0 { cell } else { 1.0 };
+        let cell = if cell.is_finite() && cell > 0.0 {
+            cell
+        } else {
+            1.0
+        };
         let finite = || points.iter().filter(|p| p.iter().all(|c| c.is_finite()));
         let mut lo = Vector3::repeat(f64::INFINITY);
         let mut hi = Vector3::repeat(f64::NEG_INFINITY);
@@ -26,14 +30,23 @@ impl GridIndex {
             hi = hi.sup(p);
         }
         if lo.x > hi.x {
-            return GridIndex { cell, ..Default::default() };
+            return GridIndex {
+                cell,
+                ..Default::default()
+            };
         }
         let mut dims = [0i64; 3];
         for a in 0..3 {
             dims[a] = (((hi[a] - lo[a]) / cell).floor() as i64 + 1).max(1);
         }
         // Very sparse sets in a huge box: coarsen so the cell array stays near the point count.
-        let mut grid = GridIndex { origin: lo, cell, dims, starts: Vec::new(), items: Vec::new() };
+        let mut grid = GridIndex {
+            origin: lo,
+            cell,
+            dims,
+            starts: Vec::new(),
+            items: Vec::new(),
+        };
         let limit = (points.len() as i64 * 8).max(4096);
         while grid.dims.iter().product::<i64>() > limit {
             grid.cell *= 2.0;
@@ -45,7 +58,11 @@ impl GridIndex {
         let mut counts = vec![0u32; ncell + 1];
         let cell_of: Vec<Option<usize>> = points
             .iter()
-            .map(|p| p.iter().all(|c| c.is_finite()).then(|| grid.flat(grid.coords(p))))
+            .map(|p| {
+                p.iter()
+                    .all(|c| c.is_finite())
+                    .then(|| grid.flat(grid.coords(p)))
+            })
             .collect();
         for c in cell_of.iter().flatten() {
             counts[c + 1] += 1;
@@ -137,7 +154,13 @@ impl GridIndex {
     }
 
     /// The `k` nearest points to `q`, as (squared distance, index), ascending, into `out`.
-    pub fn knn(&self, points: &[Vector3<f64>], q: &Vector3<f64>, k: usize, out: &mut Vec<(f64, u32)>) {
+    pub fn knn(
+        &self,
+        points: &[Vector3<f64>],
+        q: &Vector3<f64>,
+        k: usize,
+        out: &mut Vec<(f64, u32)>,
+    ) {
         out.clear();
         if k == 0 || self.items.is_empty() || !q.iter().all(|c| c.is_finite()) {
             return;
@@ -170,7 +193,12 @@ impl GridIndex {
     }
 
     /// The nearest point within `radius` of `q`, as (squared distance, index).
-    pub fn nearest_within(&self, points: &[Vector3<f64>], q: &Vector3<f64>, radius: f64) -> Option<(f64, u32)> {
+    pub fn nearest_within(
+        &self,
+        points: &[Vector3<f64>],
+        q: &Vector3<f64>,
+        radius: f64,
+    ) -> Option<(f64, u32)> {
         if self.items.is_empty() || !q.iter().all(|c| c.is_finite()) {
             return None;
         }
@@ -203,8 +231,11 @@ mod tests {
     use super::*;
 
     fn brute(points: &[Vector3<f64>], q: &Vector3<f64>, k: usize) -> Vec<u32> {
-        let mut all: Vec<(f64, u32)> =
-            points.iter().enumerate().map(|(i, p)| ((p - q).norm_squared(), i as u32)).collect();
+        let mut all: Vec<(f64, u32)> = points
+            .iter()
+            .enumerate()
+            .map(|(i, p)| ((p - q).norm_squared(), i as u32))
+            .collect();
         all.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
         all.iter().take(k).map(|e| e.1).collect()
     }
@@ -214,11 +245,14 @@ mod tests {
         // A deterministic scatter (LCG) in a 100 x 40 x 10 box.
         let mut s = 12345u64;
         let mut rnd = || {
-            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             (s >> 11) as f64 / (1u64 << 53) as f64
         };
-        let points: Vec<Vector3<f64>> =
-            (0..500).map(|_| Vector3::new(rnd() * 100.0, rnd() * 40.0, rnd() * 10.0)).collect();
+        let points: Vec<Vector3<f64>> = (0..500)
+            .map(|_| Vector3::new(rnd() * 100.0, rnd() * 40.0, rnd() * 10.0))
+            .collect();
         let grid = GridIndex::build(&points, 7.0);
         let mut out = Vec::new();
         for q in [

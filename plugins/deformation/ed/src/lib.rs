@@ -3,6 +3,10 @@
 //! (faer sparse Cholesky, symbolic factorisation reused), and the decoupled two-step solver of
 //! MIS-SLAM. A plain library: the `deformation.batch` and `deformation.decoupled` nodes wrap it.
 
+// The Jacobian and block code indexes several arrays with one index (Kronecker layouts): explicit
+// index loops are the clearer form there.
+#![allow(clippy::needless_range_loop)]
+
 pub mod decoupled;
 pub mod field;
 pub mod graph;
@@ -16,5 +20,7 @@ pub mod system;
 pub use decoupled::{Boundary, DecoupledInfo, DecoupledParams, DecoupledSolver};
 pub use field::DistanceField;
 pub use graph::{Binding, EdGraph, GraphParams, Sampling};
-pub use problem::{Correspondence, Intrinsics, Method, ModelPoints, Problem, Robust, Scan, SolverParams, Weights};
+pub use problem::{
+    Correspondence, Intrinsics, Method, ModelPoints, Problem, Robust, Scan, SolverParams, Weights,
+};
 pub use solver::{Info, SolveSet, Solver};

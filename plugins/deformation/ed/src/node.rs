@@ -13,8 +13,9 @@ use crate::problem::{Intrinsics, ModelPoints, Problem, Scan, SolverParams};
 use crate::solver::{Info, SolveSet, Solver};
 use misslam_framework::nalgebra::{Isometry3, Point3, Vector3};
 use misslam_framework::{
-    BuildContext, BuildError, DeformationGraph, DepthMap, Flow, FrameInfo, Inputs, Mesh, Metrics, Node, NodeContext,
-    NodeError, NodeResult, Outputs, PointCloud, Pose, PortSpec, PortType, Registry, TrackingState, TypedPlugin,
+    BuildContext, BuildError, DeformationGraph, DepthMap, Flow, FrameInfo, Inputs, Mesh, Metrics,
+    Node, NodeContext, NodeError, NodeResult, Outputs, PointCloud, PortSpec, PortType, Pose,
+    Registry, TrackingState, TypedPlugin,
 };
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -87,8 +88,8 @@ impl Default for DecoupledNodeParams {
 }
 
 enum Engine {
-    Batch(Solver),
-    Decoupled(DecoupledSolver, DecoupledParams),
+    Batch(Box<Solver>),
+    Decoupled(Box<DecoupledSolver>, DecoupledParams),
 }
 
 struct Model {
@@ -107,7 +108,11 @@ pub struct EdNode {
 }
 
 fn param_err(path: &str, message: String) -> BuildError {
-    BuildError::Param { key: Some(path.split('.').next().unwrap_or(path).to_owned()), path: path.to_owned(), message }
+    BuildError::Param {
+        key: Some(path.split('.').next().unwrap_or(path).to_owned()),
+        path: path.to_owned(),
+        message,
+    }
 }
 
 fn check(p: &BatchParams) -> Result<(), BuildError> {
@@ -116,10 +121,10 @@ fn check(p: &BatchParams) -> Result<(), BuildError> {
     if p.model_stride == 0 {
         return Err(param_err("model_stride", "must be at least 1".into()));
     }
-    if !(p.normal_max_step_mm > 0.0) {
+    if p.normal_max_step_mm.is_nan() || p.normal_max_step_mm <= 0.0 {
         return Err(param_err("normal_max_step_mm", "must be positive".into()));
     }
-    if !(p.visible_distance_mm > 0.0) {
+    if p.visible_distance_mm.is_nan() || p.visible_distance_mm <= 0.0 {
         return Err(param_err("visible_distance_mm", "must be positive".into()));
     }
     if !(p.visible_angle_deg > 0.0 && p.visible_angle_deg <= 180.0) {
@@ -129,7 +134,14 @@ fn check(p: &BatchParams) -> Result<(), BuildError> {
 }
 
 fn intrinsics(d: &DepthMap) -> Intrinsics {
-    Intrinsics { fx: d.calib.fx, fy: d.calib.fy, cx: d.calib.cx, cy: d.calib.cy, width: d.map.width, height: d.map.height }
+    Intrinsics {
+        fx: d.calib.fx,
+        fy: d.calib.fy,
+        cx: d.calib.cx,
+        cy: d.calib.cy,
+        width: d.map.width,
+        height: d.map.height,
+    }
 }
 
 /// Area-weighted vertex normals of a mesh (unit; zero-area fans get NaN).
@@ -142,7 +154,9 @@ fn mesh_normals(v: &[Vector3<f64>], t: &[[u32; 3]]) -> Vec<Vector3<f64>> {
             n[i as usize] += f;
         }
     }
-    n.iter().map(|x| x.try_normalize(1e-12).unwrap_or(Vector3::repeat(f64::NAN))).collect()
+    n.iter()
+        .map(|x| x.try_normalize(1e-12).unwrap_or(Vector3::repeat(f64::NAN)))
+        .collect()
 }
 
 impl EdNode {
@@ -154,16 +168,29 @@ impl EdNode {
         pose: &Isometry3<f64>,
     ) -> Result<Model, String> {
         let (points, normals, triangles) = if let Some(mesh) = template {
-            if let Some(t) = mesh.triangles.iter().find(|t| t.iter().any(|&i| i as usize >= mesh.vertices.len())) {
-                return Err(format!("template triangle {t:?} indexes past its {} vertices", mesh.vertices.len()));
+            if let Some(t) = mesh
+                .triangles
+                .iter()
+                .find(|t| t.iter().any(|&i| i as usize >= mesh.vertices.len()))
+            {
+                return Err(format!(
+                    "template triangle {t:?} indexes past its {} vertices",
+                    mesh.vertices.len()
+                ));
             }
-            let v: Vec<Vector3<f64>> =
-                mesh.vertices.iter().map(|p| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64)).collect();
+            let v: Vec<Vector3<f64>> = mesh
+                .vertices
+                .iter()
+                .map(|p| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64))
+                .collect();
             if v.iter().any(|p| !p.iter().all(|c| c.is_finite())) {
                 return Err("the template has non-finite vertices".into());
             }
             let n = match &mesh.normals {
-                Some(n) if n.len() == v.len() => n.iter().map(|p| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64)).collect(),
+                Some(n) if n.len() == v.len() => n
+                    .iter()
+                    .map(|p| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64))
+                    .collect(),
                 _ => mesh_normals(&v, &mesh.triangles),
             };
             (v, n, mesh.triangles.clone())
@@ -183,18 +210,33 @@ impl EdNode {
                 }
             }
             if v.is_empty() {
-                return Err("the first depth map has no valid pixel with a normal to build the model from".into());
+                return Err(
+                    "the first depth map has no valid pixel with a normal to build the model from"
+                        .into(),
+                );
             }
             (v, n, Vec::new())
         };
         let graph = EdGraph::from_points(&points, self.common.graph.clone())?;
         let bindings = graph.bind_all(&points);
-        Ok(Model { points, normals, bindings, triangles, graph })
+        Ok(Model {
+            points,
+            normals,
+            bindings,
+            triangles,
+            graph,
+        })
     }
 }
 
 impl Node for EdNode {
-    fn process(&mut self, _: &mut NodeContext, frame: FrameInfo, inputs: &Inputs, outputs: &mut Outputs) -> NodeResult<Flow> {
+    fn process(
+        &mut self,
+        _: &mut NodeContext,
+        frame: FrameInfo,
+        inputs: &Inputs,
+        outputs: &mut Outputs,
+    ) -> NodeResult<Flow> {
         let depth = inputs.get::<DepthMap>("depth")?;
         let k = intrinsics(depth);
         if depth.map.data.len() != (k.width * k.height) as usize {
@@ -209,18 +251,25 @@ impl Node for EdNode {
         let prior = inputs.opt::<Pose>("pose")?;
         if let Some(p) = prior {
             if p.state == TrackingState::Lost {
-                tracing::warn!(frame = frame.index, "tracking lost: the deformation uses the last pose as its prior");
+                tracing::warn!(
+                    frame = frame.index,
+                    "tracking lost: the deformation uses the last pose as its prior"
+                );
             }
         }
         let prior_pose = prior.map_or(Isometry3::identity(), |p| p.world_from_camera);
         let scan = scan_from_depth(&depth.map.data, &k, self.common.normal_max_step_mm);
         if self.model.is_none() {
             let template = inputs.opt::<Mesh>("template")?;
-            let m = self.init_model(template.map(|a| a.as_ref()), depth, &scan, &prior_pose).map_err(NodeError::msg)?;
+            let m = self
+                .init_model(template.map(|a| a.as_ref()), depth, &scan, &prior_pose)
+                .map_err(NodeError::msg)?;
             self.model = Some(m);
         }
         let c = &self.common;
-        let Some(model) = self.model.as_mut() else { return Err(NodeError::msg("no model")) };
+        let Some(model) = self.model.as_mut() else {
+            return Err(NodeError::msg("no model"));
+        };
         let visible = visible_points(
             &model.graph,
             &model.points,
@@ -235,10 +284,21 @@ impl Node for EdNode {
         );
         let lp: Vec<Vector3<f64>> = visible.iter().map(|&i| model.points[i as usize]).collect();
         let ln: Vec<Vector3<f64>> = visible.iter().map(|&i| model.normals[i as usize]).collect();
-        let lb: Vec<Binding> = visible.iter().map(|&i| model.bindings[i as usize]).collect();
+        let lb: Vec<Binding> = visible
+            .iter()
+            .map(|&i| model.bindings[i as usize])
+            .collect();
         let problem = Problem {
-            model: ModelPoints { points: &lp, normals: &ln, bindings: &lb },
-            scan: Some(Scan { intrinsics: k, vertices: &scan.0, normals: &scan.1 }),
+            model: ModelPoints {
+                points: &lp,
+                normals: &ln,
+                bindings: &lb,
+            },
+            scan: Some(Scan {
+                intrinsics: k,
+                vertices: &scan.0,
+                normals: &scan.1,
+            }),
             field: None,
             correspondences: &[],
             pose_prior: prior_pose,
@@ -248,18 +308,26 @@ impl Node for EdNode {
         let info: Info = match &mut self.engine {
             Engine::Batch(s) => {
                 let set = SolveSet::all(&model.graph, c.solver.optimize_pose);
-                s.solve(&mut model.graph, &mut pose, &problem, &set, &c.solver).map_err(NodeError::msg)?
+                s.solve(&mut model.graph, &mut pose, &problem, &set, &c.solver)
+                    .map_err(NodeError::msg)?
             }
             Engine::Decoupled(s, dp) => {
-                let d = s.solve(&mut model.graph, &mut pose, &problem, &c.solver, dp).map_err(NodeError::msg)?;
+                let d = s
+                    .solve(&mut model.graph, &mut pose, &problem, &c.solver, dp)
+                    .map_err(NodeError::msg)?;
                 metrics.values.insert("pr_nodes".into(), d.pr_nodes as f64);
-                metrics.values.insert("pi_solved".into(), d.pi_solved as f64);
+                metrics
+                    .values
+                    .insert("pi_solved".into(), d.pi_solved as f64);
                 d.combined()
             }
         };
         if model.graph.warp.iter().flatten().any(|x| !x.is_finite()) {
             model.graph.reset();
-            return Err(NodeError::msg(format!("the deformation solve of frame {} diverged; the warp was reset", frame.index)));
+            return Err(NodeError::msg(format!(
+                "the deformation solve of frame {} diverged; the warp was reset",
+                frame.index
+            )));
         }
         for (k, v) in [
             ("iterations", info.iterations as f64),
@@ -277,7 +345,13 @@ impl Node for EdNode {
             metrics.values.insert(format!("cost_it{i}"), *cst);
         }
         let (mut dp, mut dn) = (Vec::new(), Vec::new());
-        model.graph.deform(&model.points, Some(&model.normals), &model.bindings, &mut dp, &mut dn);
+        model.graph.deform(
+            &model.points,
+            Some(&model.normals),
+            &model.bindings,
+            &mut dp,
+            &mut dn,
+        );
         let f3 = |v: &Vector3<f64>| [v.x as f32, v.y as f32, v.z as f32];
         outputs.put(
             "mesh",
@@ -288,20 +362,39 @@ impl Node for EdNode {
                 triangles: model.triangles.clone(),
             },
         )?;
-        outputs.put("visible", PointCloud { positions: visible.iter().map(|&i| f3(&dp[i as usize])).collect(), colors: None })?;
+        outputs.put(
+            "visible",
+            PointCloud {
+                positions: visible.iter().map(|&i| f3(&dp[i as usize])).collect(),
+                colors: None,
+            },
+        )?;
         let g = &model.graph;
         outputs.put(
             "graph",
             DeformationGraph {
                 nodes: g.nodes().iter().map(f3).collect(),
-                affines: g.warp.iter().map(|p| [p[0], p[1], p[2], p[4], p[5], p[6], p[8], p[9], p[10]].map(|x| x as f32)).collect(),
-                translations: g.warp.iter().map(|p| [p[3] as f32, p[7] as f32, p[11] as f32]).collect(),
+                affines: g
+                    .warp
+                    .iter()
+                    .map(|p| {
+                        [p[0], p[1], p[2], p[4], p[5], p[6], p[8], p[9], p[10]].map(|x| x as f32)
+                    })
+                    .collect(),
+                translations: g
+                    .warp
+                    .iter()
+                    .map(|p| [p[3] as f32, p[7] as f32, p[11] as f32])
+                    .collect(),
                 edges: g.edges().map(|(a, b)| [a, b]).collect(),
             },
         )?;
         outputs.put(
             "pose",
-            Pose { world_from_camera: pose, state: prior.map_or(TrackingState::Tracking, |p| p.state) },
+            Pose {
+                world_from_camera: pose,
+                state: prior.map_or(TrackingState::Tracking, |p| p.state),
+            },
         )?;
         outputs.put("info", metrics)?;
         Ok(Flow::Continue)
@@ -310,19 +403,51 @@ impl Node for EdNode {
 
 fn inputs() -> Vec<PortSpec> {
     vec![
-        PortSpec::new("depth", PortType::Depth, "the live depth (left camera), lifted to vertex and normal maps"),
-        PortSpec::optional("pose", PortType::Pose, "world_from_camera from the rigid tracker (prior and start); identity if absent"),
-        PortSpec::optional("template", PortType::Mesh, "the model to deform, world frame, read on the first frame only"),
+        PortSpec::new(
+            "depth",
+            PortType::Depth,
+            "the live depth (left camera), lifted to vertex and normal maps",
+        ),
+        PortSpec::optional(
+            "pose",
+            PortType::Pose,
+            "world_from_camera from the rigid tracker (prior and start); identity if absent",
+        ),
+        PortSpec::optional(
+            "template",
+            PortType::Mesh,
+            "the model to deform, world frame, read on the first frame only",
+        ),
     ]
 }
 
 fn outputs() -> Vec<PortSpec> {
     vec![
-        PortSpec::new("mesh", PortType::Mesh, "the deformed model, world frame (the template's triangles, if any)"),
-        PortSpec::new("visible", PortType::PointCloud, "the deformed visible points V^n that fed the data term"),
-        PortSpec::new("graph", PortType::DeformationGraph, "nodes, their warps and edges"),
-        PortSpec::new("pose", PortType::Pose, "the camera pose after the solve (the prior unless solver.optimize_pose)"),
-        PortSpec::new("info", PortType::Metrics, "iterations, cost before/after and per iteration, nodes solved, ms"),
+        PortSpec::new(
+            "mesh",
+            PortType::Mesh,
+            "the deformed model, world frame (the template's triangles, if any)",
+        ),
+        PortSpec::new(
+            "visible",
+            PortType::PointCloud,
+            "the deformed visible points V^n that fed the data term",
+        ),
+        PortSpec::new(
+            "graph",
+            PortType::DeformationGraph,
+            "nodes, their warps and edges",
+        ),
+        PortSpec::new(
+            "pose",
+            PortType::Pose,
+            "the camera pose after the solve (the prior unless solver.optimize_pose)",
+        ),
+        PortSpec::new(
+            "info",
+            PortType::Metrics,
+            "iterations, cost before/after and per iteration, nodes solved, ms",
+        ),
     ]
 }
 
@@ -335,7 +460,11 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
         outputs(),
         |p: BatchParams, _: &BuildContext| {
             check(&p)?;
-            Ok(EdNode { common: p, engine: Engine::Batch(Solver::default()), model: None })
+            Ok(EdNode {
+                common: p,
+                engine: Engine::Batch(Box::default()),
+                model: None,
+            })
         },
     ))?;
     registry.register(TypedPlugin::new(
@@ -353,7 +482,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
                 visible_angle_deg: p.visible_angle_deg,
             };
             check(&common)?;
-            Ok(EdNode { common, engine: Engine::Decoupled(DecoupledSolver::default(), p.decoupled), model: None })
+            Ok(EdNode { common, engine: Engine::Decoupled(Box::default(), p.decoupled), model: None })
         },
     ))
 }

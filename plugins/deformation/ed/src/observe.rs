@@ -10,7 +10,11 @@ use rayon::prelude::*;
 /// Lifts depth (mm, NaN invalid, row-major) to camera-frame vertices and normals. A normal is the
 /// cross product of central differences, turned towards the camera; it is NaN when a neighbour is
 /// invalid or a depth step to a neighbour exceeds `max_step_mm` (an occlusion edge).
-pub fn scan_from_depth(depth: &[f32], k: &Intrinsics, max_step_mm: f32) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
+pub fn scan_from_depth(
+    depth: &[f32],
+    k: &Intrinsics,
+    max_step_mm: f32,
+) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
     let (w, h) = (k.width as usize, k.height as usize);
     let nan = [f32::NAN; 3];
     let lift = |i: usize| -> [f32; 3] {
@@ -19,7 +23,11 @@ pub fn scan_from_depth(depth: &[f32], k: &Intrinsics, max_step_mm: f32) -> (Vec<
             return nan;
         }
         let (u, v) = ((i % w) as f64, (i / w) as f64);
-        [((u - k.cx) / k.fx * z as f64) as f32, ((v - k.cy) / k.fy * z as f64) as f32, z]
+        [
+            ((u - k.cx) / k.fx * z as f64) as f32,
+            ((v - k.cy) / k.fy * z as f64) as f32,
+            z,
+        ]
     };
     let vertices: Vec<[f32; 3]> = (0..w * h).into_par_iter().map(lift).collect();
     let normals: Vec<[f32; 3]> = (0..w * h)
@@ -29,20 +37,36 @@ pub fn scan_from_depth(depth: &[f32], k: &Intrinsics, max_step_mm: f32) -> (Vec<
             if x == 0 || y == 0 || x + 1 >= w || y + 1 >= h || !vertices[i][2].is_finite() {
                 return nan;
             }
-            let (l, r, u, d) = (vertices[i - 1], vertices[i + 1], vertices[i - w], vertices[i + w]);
+            let (l, r, u, d) = (
+                vertices[i - 1],
+                vertices[i + 1],
+                vertices[i - w],
+                vertices[i + w],
+            );
             let z = vertices[i][2];
-            if [l, r, u, d].iter().any(|p| !p[2].is_finite() || (p[2] - z).abs() > max_step_mm) {
+            if [l, r, u, d]
+                .iter()
+                .any(|p| !p[2].is_finite() || (p[2] - z).abs() > max_step_mm)
+            {
                 return nan;
             }
             let a = [r[0] - l[0], r[1] - l[1], r[2] - l[2]];
             let b = [d[0] - u[0], d[1] - u[1], d[2] - u[2]];
-            let n = [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+            let n = [
+                a[1] * b[2] - a[2] * b[1],
+                a[2] * b[0] - a[0] * b[2],
+                a[0] * b[1] - a[1] * b[0],
+            ];
             let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
-            if !(len > 0.0) {
+            if len.is_nan() || len <= 0.0 {
                 return nan;
             }
             let p = vertices[i];
-            let s = if n[0] * p[0] + n[1] * p[1] + n[2] * p[2] > 0.0 { -1.0 / len } else { 1.0 / len };
+            let s = if n[0] * p[0] + n[1] * p[1] + n[2] * p[2] > 0.0 {
+                -1.0 / len
+            } else {
+                1.0 / len
+            };
             n.map(|c| c * s)
         })
         .collect();
@@ -75,7 +99,7 @@ pub fn visible_points(
         .filter(|&i| {
             let i = i as usize;
             let p = cfw * Point3::from(graph.warp_point(&points[i], &bindings[i]));
-            if !(p.z > 1e-6) {
+            if p.z.is_nan() || p.z <= 1e-6 {
                 return false;
             }
             let u = (k.fx * p.x / p.z + k.cx).round();
@@ -104,7 +128,14 @@ mod tests {
 
     #[test]
     fn a_tilted_plane_gives_its_points_and_normal_and_edges_are_invalid() {
-        let k = Intrinsics { fx: 100.0, fy: 100.0, cx: 10.0, cy: 8.0, width: 21, height: 17 };
+        let k = Intrinsics {
+            fx: 100.0,
+            fy: 100.0,
+            cx: 10.0,
+            cy: 8.0,
+            width: 21,
+            height: 17,
+        };
         // Plane z = 50 + 0.5 x: depth at pixel u solves z = 50 + 0.5 (u - cx) z / fx.
         let mut depth = vec![0f32; 21 * 17];
         for (i, d) in depth.iter_mut().enumerate() {

@@ -49,7 +49,11 @@ pub struct ModelPoints<'a> {
 
 impl ModelPoints<'_> {
     /// No points.
-    pub const EMPTY: ModelPoints<'static> = ModelPoints { points: &[], normals: &[], bindings: &[] };
+    pub const EMPTY: ModelPoints<'static> = ModelPoints {
+        points: &[],
+        normals: &[],
+        bindings: &[],
+    };
 }
 
 /// A sparse correspondence: a canonical model point (a keypoint of the model) should land on an
@@ -106,7 +110,16 @@ pub struct Weights {
 
 impl Default for Weights {
     fn default() -> Self {
-        Weights { rot: 1.0, reg: 10.0, data: 1.0, point_to_point: 0.0, field: 1.0, corr: 1.0, pose_rot: 1e4, pose_trans: 10.0 }
+        Weights {
+            rot: 1.0,
+            reg: 10.0,
+            data: 1.0,
+            point_to_point: 0.0,
+            field: 1.0,
+            corr: 1.0,
+            pose_rot: 1e4,
+            pose_trans: 10.0,
+        }
     }
 }
 
@@ -222,13 +235,19 @@ impl SolverParams {
                 return Err(format!("{name} must be a finite number >= 0, got {v}"));
             }
         }
-        for (name, v) in [("max_distance_mm", self.max_distance_mm), ("robust_scale_mm", self.robust_scale_mm)] {
+        for (name, v) in [
+            ("max_distance_mm", self.max_distance_mm),
+            ("robust_scale_mm", self.robust_scale_mm),
+        ] {
             if !(v.is_finite() && v > 0.0) {
                 return Err(format!("{name} must be > 0, got {v}"));
             }
         }
         if !(self.max_normal_angle_deg > 0.0 && self.max_normal_angle_deg <= 180.0) {
-            return Err(format!("max_normal_angle_deg must be in (0, 180], got {}", self.max_normal_angle_deg));
+            return Err(format!(
+                "max_normal_angle_deg must be in (0, 180], got {}",
+                self.max_normal_angle_deg
+            ));
         }
         if self.max_iterations == 0 {
             return Err("max_iterations must be at least 1".into());

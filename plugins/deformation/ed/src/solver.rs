@@ -13,7 +13,9 @@
 use crate::graph::{apply_node, Binding, EdGraph};
 use crate::problem::{Method, Problem, SolverParams};
 use crate::system::{BlockSystem, PatternKey};
-use misslam_framework::nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use misslam_framework::nalgebra::{
+    Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3,
+};
 use rayon::prelude::*;
 use std::time::Instant;
 
@@ -44,6 +46,9 @@ pub struct Info {
     pub ms_total: f64,
 }
 
+/// Dense J^T W J (row-major), J^T W r, each node's block index (u32::MAX when fixed), cost.
+pub type DenseLinearization = (Vec<f64>, Vec<f64>, Vec<u32>, f64);
+
 /// Which nodes and terms one call of the loop solves.
 #[derive(Clone, Debug, Default)]
 pub struct SolveSet {
@@ -67,7 +72,12 @@ impl SolveSet {
                 reg_edges.push((j as u32, k));
             }
         }
-        SolveSet { free, reg_edges, data: true, pose }
+        SolveSet {
+            free,
+            reg_edges,
+            data: true,
+            pose,
+        }
     }
 }
 
@@ -141,7 +151,13 @@ impl Solver {
     }
 
     /// Projective association at the current state (parallel over model points).
-    fn associate(&mut self, graph: &EdGraph, problem: &Problem, pose: &Isometry3<f64>, params: &SolverParams) {
+    fn associate(
+        &mut self,
+        graph: &EdGraph,
+        problem: &Problem,
+        pose: &Isometry3<f64>,
+        params: &SolverParams,
+    ) {
         self.assoc.clear();
         let Some(scan) = problem.scan else { return };
         let model = &problem.model;
@@ -161,7 +177,7 @@ impl Solver {
                 let b = &model.bindings[i];
                 let vw = graph.warp_point(&model.points[i], b);
                 let p = cam_from_world * misslam_framework::nalgebra::Point3::from(vw);
-                if !(p.z > 1e-6) {
+                if p.z.is_nan() || p.z <= 1e-6 {
                     return None;
                 }
                 let u = (k.fx * p.x / p.z + k.cx).round();
@@ -192,7 +208,14 @@ impl Solver {
     }
 
     /// Total cost of the terms of `set` at the current state, with the current association.
-    fn cost(&self, graph: &EdGraph, problem: &Problem, pose: &Isometry3<f64>, set: &SolveSet, params: &SolverParams) -> f64 {
+    fn cost(
+        &self,
+        graph: &EdGraph,
+        problem: &Problem,
+        pose: &Isometry3<f64>,
+        set: &SolveSet,
+        params: &SolverParams,
+    ) -> f64 {
         let w = &params.weights;
         let mut total = 0.0;
         let free: &[u32] = &set.free;
@@ -211,7 +234,8 @@ impl Solver {
                 .assoc
                 .par_iter()
                 .map(|a| {
-                    let vw = graph.warp_point(&model.points[a.i as usize], &model.bindings[a.i as usize]);
+                    let vw = graph
+                        .warp_point(&model.points[a.i as usize], &model.bindings[a.i as usize]);
                     let p = cfw * misslam_framework::nalgebra::Point3::from(vw);
                     let d = p.coords - a.q;
                     let rn = a.n.dot(&d);
@@ -225,7 +249,9 @@ impl Solver {
                     .filter_map(|i| {
                         let vw = graph.warp_point(&model.points[i], &model.bindings[i]);
                         let p = cfw * misslam_framework::nalgebra::Point3::from(vw);
-                        field.sample(&p.coords).map(|(d, _)| w.field * params.robust.weight_cost(d.abs(), c).1)
+                        field
+                            .sample(&p.coords)
+                            .map(|(d, _)| w.field * params.robust.weight_cost(d.abs(), c).1)
                     })
                     .sum::<f64>();
             }
@@ -238,7 +264,8 @@ impl Solver {
         }
         if set.pose {
             total += w.pose_rot * pose_rot_residual(&problem.pose_prior, pose).norm_squared();
-            total += w.pose_trans * (pose.translation.vector - problem.pose_prior.translation.vector).norm_squared();
+            total += w.pose_trans
+                * (pose.translation.vector - problem.pose_prior.translation.vector).norm_squared();
         }
         total
     }
@@ -275,7 +302,11 @@ impl Solver {
         }
         pairs.sort_unstable();
         pairs.dedup();
-        PatternKey { free: set.free.clone(), pairs, pose: set.pose }
+        PatternKey {
+            free: set.free.clone(),
+            pairs,
+            pose: set.pose,
+        }
     }
 
     /// Adds one point's residual rows: each row is (a, r, weight) with r = a . (p_cam - target)
@@ -378,7 +409,14 @@ impl Solver {
     }
 
     /// Assembles J^T W J and J^T W r of `set` at the current state.
-    fn assemble(&mut self, graph: &EdGraph, problem: &Problem, pose: &Isometry3<f64>, set: &SolveSet, params: &SolverParams) {
+    fn assemble(
+        &mut self,
+        graph: &EdGraph,
+        problem: &Problem,
+        pose: &Isometry3<f64>,
+        set: &SolveSet,
+        params: &SolverParams,
+    ) {
         let w = &params.weights;
         let sys = &mut self.system;
         // E_rot.
@@ -445,8 +483,21 @@ impl Solver {
                     (Vector3::y(), d.y, pp),
                     (Vector3::z(), d.z, pp),
                 ];
-                let used = if w.point_to_point > 0.0 { &rows[..] } else { &rows[..1] };
-                Self::add_point(sys, graph, &model.points[i], &model.bindings[i], &p, &r_wc, used, set.pose);
+                let used = if w.point_to_point > 0.0 {
+                    &rows[..]
+                } else {
+                    &rows[..1]
+                };
+                Self::add_point(
+                    sys,
+                    graph,
+                    &model.points[i],
+                    &model.bindings[i],
+                    &p,
+                    &r_wc,
+                    used,
+                    set.pose,
+                );
             }
             if let Some(field) = problem.field {
                 for i in 0..model.points.len() {
@@ -455,7 +506,16 @@ impl Solver {
                     if let Some((dv, grad)) = field.sample(&p) {
                         let (rw, _) = params.robust.weight_cost(dv.abs(), c);
                         let rows = [(grad, dv, w.field * rw)];
-                        Self::add_point(sys, graph, &model.points[i], &model.bindings[i], &p, &r_wc, &rows, set.pose);
+                        Self::add_point(
+                            sys,
+                            graph,
+                            &model.points[i],
+                            &model.bindings[i],
+                            &p,
+                            &r_wc,
+                            &rows,
+                            set.pose,
+                        );
                     }
                 }
             }
@@ -465,8 +525,21 @@ impl Solver {
                 let d = p - corr.target;
                 let (rw, _) = params.robust.weight_cost(d.norm(), c);
                 let wc = w.corr * rw;
-                let rows = [(Vector3::x(), d.x, wc), (Vector3::y(), d.y, wc), (Vector3::z(), d.z, wc)];
-                Self::add_point(sys, graph, &corr.point, &corr.binding, &p, &r_wc, &rows, set.pose);
+                let rows = [
+                    (Vector3::x(), d.x, wc),
+                    (Vector3::y(), d.y, wc),
+                    (Vector3::z(), d.z, wc),
+                ];
+                Self::add_point(
+                    sys,
+                    graph,
+                    &corr.point,
+                    &corr.binding,
+                    &p,
+                    &r_wc,
+                    &rows,
+                    set.pose,
+                );
             }
         }
         if set.pose {
@@ -496,7 +569,7 @@ impl Solver {
         problem: &Problem,
         set: &SolveSet,
         params: &SolverParams,
-    ) -> Result<(Vec<f64>, Vec<f64>, Vec<u32>, f64), String> {
+    ) -> Result<DenseLinearization, String> {
         let key = self.pattern(graph, problem, set);
         self.system.prepare(graph.len(), key)?;
         if set.data {
@@ -504,7 +577,12 @@ impl Solver {
         }
         self.assemble(graph, problem, pose, set, params);
         let cost = self.cost(graph, problem, pose, set, params);
-        Ok((self.system.to_dense(), self.system.grad.clone(), self.system.slot.clone(), cost))
+        Ok((
+            self.system.to_dense(),
+            self.system.grad.clone(),
+            self.system.slot.clone(),
+            cost,
+        ))
     }
 
     /// Diagnostics: the cost of `set` at the given state with the association of the last
@@ -536,7 +614,10 @@ impl Solver {
     ) -> Result<Info, String> {
         params.validate()?;
         let t0 = Instant::now();
-        let mut info = Info { solved_nodes: set.free.len(), ..Default::default() };
+        let mut info = Info {
+            solved_nodes: set.free.len(),
+            ..Default::default()
+        };
         if problem.model.points.len() != problem.model.bindings.len() {
             return Err(format!(
                 "{} model points but {} bindings",
@@ -566,7 +647,8 @@ impl Solver {
             info.ms_assemble += tb.elapsed().as_secs_f64() * 1e3;
             let pose0 = *pose;
             self.saved.clear();
-            self.saved.extend(set.free.iter().map(|&j| graph.warp[j as usize]));
+            self.saved
+                .extend(set.free.iter().map(|&j| graph.warp[j as usize]));
             let mut accepted = false;
             let mut step_norm = 0.0f64;
             for _attempt in 0..10 {
@@ -616,14 +698,24 @@ impl Solver {
             info.ms_associate += ta.elapsed().as_secs_f64() * 1e3;
             let prev = info.costs.last().copied().unwrap_or(info.cost_before);
             info.costs.push(cost);
-            if step_norm < params.min_step || (prev - cost).abs() <= params.min_relative_decrease * prev.max(1e-30) {
+            if step_norm < params.min_step
+                || (prev - cost).abs() <= params.min_relative_decrease * prev.max(1e-30)
+            {
                 break;
             }
         }
         info.cost_after = cost;
         info.data_terms = self.assoc.len()
-            + if set.data { problem.correspondences.len() } else { 0 }
-            + if set.data && problem.field.is_some() { problem.model.points.len() } else { 0 };
+            + if set.data {
+                problem.correspondences.len()
+            } else {
+                0
+            }
+            + if set.data && problem.field.is_some() {
+                problem.model.points.len()
+            } else {
+                0
+            };
         info.symbolic_builds = self.system.symbolic_builds - builds0;
         info.ms_total = t0.elapsed().as_secs_f64() * 1e3;
         Ok(info)
@@ -642,5 +734,18 @@ pub fn reg_residual(graph: &EdGraph, j: u32, k: u32) -> Vector3<f64> {
 pub fn rigid_warp(rotation: &Rotation3<f64>, t: &Vector3<f64>, g: &Vector3<f64>) -> [f64; 12] {
     let m = rotation.matrix();
     let tj = rotation * g + t - g;
-    [m[(0, 0)], m[(0, 1)], m[(0, 2)], tj.x, m[(1, 0)], m[(1, 1)], m[(1, 2)], tj.y, m[(2, 0)], m[(2, 1)], m[(2, 2)], tj.z]
+    [
+        m[(0, 0)],
+        m[(0, 1)],
+        m[(0, 2)],
+        tj.x,
+        m[(1, 0)],
+        m[(1, 1)],
+        m[(1, 2)],
+        tj.y,
+        m[(2, 0)],
+        m[(2, 1)],
+        m[(2, 2)],
+        tj.z,
+    ]
 }

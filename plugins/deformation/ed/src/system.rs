@@ -9,7 +9,9 @@
 //! and the block pattern stay the same (across iterations, and across frames on a static graph).
 
 use faer::dyn_stack::{MemBuffer, MemStack};
-use faer::sparse::linalg::cholesky::{factorize_symbolic_cholesky, CholeskySymbolicParams, SymbolicCholesky, SymmetricOrdering};
+use faer::sparse::linalg::cholesky::{
+    factorize_symbolic_cholesky, CholeskySymbolicParams, SymbolicCholesky, SymmetricOrdering,
+};
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
 use faer::{Par, Side};
 
@@ -127,9 +129,16 @@ impl BlockSystem {
         if nf > 0 {
             let sym = SymbolicSparseColMatRef::new_checked(nf, nf, &cp, None, &ri);
             let req = faer::sparse::linalg::amd::order_scratch::<usize>(nf, ri.len());
-            let mut mem = MemBuffer::try_new(req).map_err(|_| "out of memory ordering the deformation graph")?;
-            faer::sparse::linalg::amd::order(&mut perm, &mut perm_inv, sym, Default::default(), MemStack::new(&mut mem))
-                .map_err(|e| format!("AMD ordering failed: {e:?}"))?;
+            let mut mem = MemBuffer::try_new(req)
+                .map_err(|_| "out of memory ordering the deformation graph")?;
+            faer::sparse::linalg::amd::order(
+                &mut perm,
+                &mut perm_inv,
+                sym,
+                Default::default(),
+                MemStack::new(&mut mem),
+            )
+            .map_err(|e| format!("AMD ordering failed: {e:?}"))?;
         }
         // slot[node] = position in the elimination order.
         let mut slot = vec![u32::MAX; n_nodes];
@@ -183,8 +192,13 @@ impl BlockSystem {
         let symbolic = if n > 0 {
             let a = SymbolicSparseColMatRef::new_checked(n, n, &col_ptr, None, &row_idx);
             Some(
-                factorize_symbolic_cholesky(a, Side::Upper, SymmetricOrdering::Identity, CholeskySymbolicParams::default())
-                    .map_err(|e| format!("symbolic Cholesky failed: {e:?}"))?,
+                factorize_symbolic_cholesky(
+                    a,
+                    Side::Upper,
+                    SymmetricOrdering::Identity,
+                    CholeskySymbolicParams::default(),
+                )
+                .map_err(|e| format!("symbolic Cholesky failed: {e:?}"))?,
             )
         } else {
             None
@@ -194,13 +208,18 @@ impl BlockSystem {
             let req = s
                 .factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default())
                 .or(s.solve_in_place_scratch::<f64>(1, Par::Seq));
-            self.scratch = MemBuffer::try_new(req).map_err(|_| "out of memory for the Cholesky workspace")?;
+            self.scratch =
+                MemBuffer::try_new(req).map_err(|_| "out of memory for the Cholesky workspace")?;
         }
         self.symbolic_builds += 1;
         self.nb = nf;
         self.slot = slot;
         self.blocks = vec![[0.0; 144]; rows.len()];
-        self.pose_cross = if pose { vec![[0.0; 72]; nf] } else { Vec::new() };
+        self.pose_cross = if pose {
+            vec![[0.0; 72]; nf]
+        } else {
+            Vec::new()
+        };
         self.grad = vec![0.0; n];
         self.values = vec![0.0; row_idx.len()];
         self.col_start = col_start;
@@ -211,7 +230,13 @@ impl BlockSystem {
         // An empty system still counts as prepared.
         self.symbolic = symbolic.or_else(|| {
             let a = SymbolicSparseColMatRef::new_checked(0, 0, &[0usize][..], None, &[][..]);
-            factorize_symbolic_cholesky(a, Side::Upper, SymmetricOrdering::Identity, CholeskySymbolicParams::default()).ok()
+            factorize_symbolic_cholesky(
+                a,
+                Side::Upper,
+                SymmetricOrdering::Identity,
+                CholeskySymbolicParams::default(),
+            )
+            .ok()
         });
         self.key = key;
         Ok(())
@@ -223,15 +248,29 @@ impl BlockSystem {
         let list = &self.rows[self.col_start[bj as usize]..self.col_start[bj as usize + 1]];
         match list.binary_search(&bi) {
             Ok(p) => self.col_start[bj as usize] + p,
-            Err(_) => panic!("block ({bi}, {bj}) is not in the pattern: the pattern key missed a coupling"),
+            Err(_) => panic!(
+                "block ({bi}, {bj}) is not in the pattern: the pattern key missed a coupling"
+            ),
         }
     }
 
     /// Adds `scale * M (x) (ua ub^T)` to the block of solved nodes (sa, sb) (rows of sa, columns of
     /// sb), where M is symmetric 3x3 and u are 4-vectors; the transpose goes to the upper block.
     #[inline]
-    pub fn add_kron(&mut self, sa: u32, sb: u32, m: &[[f64; 3]; 3], ua: &[f64; 4], ub: &[f64; 4], scale: f64) {
-        let (bi, bj, ur, uc) = if sa <= sb { (sa, sb, ua, ub) } else { (sb, sa, ub, ua) };
+    pub fn add_kron(
+        &mut self,
+        sa: u32,
+        sb: u32,
+        m: &[[f64; 3]; 3],
+        ua: &[f64; 4],
+        ub: &[f64; 4],
+        scale: f64,
+    ) {
+        let (bi, bj, ur, uc) = if sa <= sb {
+            (sa, sb, ua, ub)
+        } else {
+            (sb, sa, ub, ua)
+        };
         let idx = self.find(bi, bj);
         let blk = &mut self.blocks[idx];
         for s in 0..3 {
@@ -254,7 +293,14 @@ impl BlockSystem {
 
     /// Adds `scale * I (x) (ua ub^T)` (no 3x3 mixing), the shape of the regularisation term.
     #[inline]
-    pub fn add_kron_identity(&mut self, sa: u32, sb: u32, ua: &[f64; 4], ub: &[f64; 4], scale: f64) {
+    pub fn add_kron_identity(
+        &mut self,
+        sa: u32,
+        sb: u32,
+        ua: &[f64; 4],
+        ub: &[f64; 4],
+        scale: f64,
+    ) {
         const I3: [[f64; 3]; 3] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
         self.add_kron(sa, sb, &I3, ua, ub, scale);
     }
@@ -322,7 +368,8 @@ impl BlockSystem {
             let (c0, c1) = (self.col_start[bj], self.col_start[bj + 1]);
             for cc in 0..12 {
                 for bidx in c0..c1 - 1 {
-                    self.values[k..k + 12].copy_from_slice(&self.blocks[bidx][cc * 12..cc * 12 + 12]);
+                    self.values[k..k + 12]
+                        .copy_from_slice(&self.blocks[bidx][cc * 12..cc * 12 + 12]);
                     k += 12;
                 }
                 let d = &self.blocks[c1 - 1];
@@ -336,7 +383,8 @@ impl BlockSystem {
                     self.values[k..k + 12].copy_from_slice(&cross[pc * 12..pc * 12 + 12]);
                     k += 12;
                 }
-                self.values[k..k + pc + 1].copy_from_slice(&self.pose_block[pc * 6..pc * 6 + pc + 1]);
+                self.values[k..k + pc + 1]
+                    .copy_from_slice(&self.pose_block[pc * 6..pc * 6 + pc + 1]);
                 k += pc + 1;
             }
         }
@@ -345,8 +393,14 @@ impl BlockSystem {
             let d = self.values[p];
             self.values[p] = d + lambda * (d.abs() + ridge) + 1e-12 * ridge;
         }
-        let symbolic = self.symbolic.as_ref().ok_or("the system was not prepared")?;
-        let a = SparseColMatRef::new(SymbolicSparseColMatRef::new_checked(n, n, &self.col_ptr, None, &self.row_idx), &self.values);
+        let symbolic = self
+            .symbolic
+            .as_ref()
+            .ok_or("the system was not prepared")?;
+        let a = SparseColMatRef::new(
+            SymbolicSparseColMatRef::new_checked(n, n, &self.col_ptr, None, &self.row_idx),
+            &self.values,
+        );
         let stack = MemStack::new(&mut self.scratch);
         let llt = match symbolic.factorize_numeric_llt::<f64>(
             &mut self.l_values,
@@ -364,7 +418,12 @@ impl BlockSystem {
             *x = -g;
         }
         let rhs = faer::MatMut::from_column_major_slice_mut(dx.as_mut_slice(), n, 1);
-        llt.solve_in_place_with_conj(faer::Conj::No, rhs, Par::Seq, MemStack::new(&mut self.scratch));
+        llt.solve_in_place_with_conj(
+            faer::Conj::No,
+            rhs,
+            Par::Seq,
+            MemStack::new(&mut self.scratch),
+        );
         Ok(dx.iter().all(|x| x.is_finite()))
     }
 }

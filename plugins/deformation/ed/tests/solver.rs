@@ -1,3 +1,4 @@
+#![allow(clippy::unwrap_used)]
 //! The solvers on constructed cases: analytic Jacobians against finite differences, exact recovery
 //! of known deformations, convergence, symbolic reuse, the decoupled split, the pose.
 
@@ -9,7 +10,10 @@ use misslam_deformation_ed::*;
 use misslam_framework::nalgebra::{Isometry3, Rotation3, Translation3, UnitQuaternion, Vector3};
 
 fn rigid(rx: f64, ry: f64, rz: f64, t: [f64; 3]) -> (Rotation3<f64>, Vector3<f64>) {
-    (Rotation3::from_euler_angles(rx, ry, rz), Vector3::new(t[0], t[1], t[2]))
+    (
+        Rotation3::from_euler_angles(rx, ry, rz),
+        Vector3::new(t[0], t[1], t[2]),
+    )
 }
 
 /// A small scene for derivative checks: sheet, graph, scan of a deformed copy, field, correspondences.
@@ -26,16 +30,38 @@ struct Scene {
 fn small_scene() -> Scene {
     let (points, tris) = sheet(21, 15, 1.0, 60.0);
     let normals = vertex_normals(&points, &tris);
-    let graph = EdGraph::from_points(&points, GraphParams { spacing: 6.0, ..Default::default() }).unwrap();
+    let graph = EdGraph::from_points(
+        &points,
+        GraphParams {
+            spacing: 6.0,
+            ..Default::default()
+        },
+    )
+    .unwrap();
     let bindings = graph.bind_all(&points);
-    let moved: Vec<Vector3<f64>> = points.iter().map(|p| p + Vector3::new(0.3, -0.2, 0.8 + 0.01 * p.x)).collect();
+    let moved: Vec<Vector3<f64>> = points
+        .iter()
+        .map(|p| p + Vector3::new(0.3, -0.2, 0.8 + 0.01 * p.x))
+        .collect();
     let maps = render(&moved, &tris, &Isometry3::identity());
     let field = DistanceField::from_scan(&maps.0, &maps.1, 0.5, 4.0, 10_000_000).unwrap();
     let corr = (0..points.len())
         .step_by(37)
-        .map(|i| Correspondence { point: points[i], binding: bindings[i], target: moved[i] + Vector3::new(0.1, 0.0, -0.1) })
+        .map(|i| Correspondence {
+            point: points[i],
+            binding: bindings[i],
+            target: moved[i] + Vector3::new(0.1, 0.0, -0.1),
+        })
         .collect();
-    Scene { points, normals, bindings, graph, maps, field, corr }
+    Scene {
+        points,
+        normals,
+        bindings,
+        graph,
+        maps,
+        field,
+        corr,
+    }
 }
 
 #[test]
@@ -48,11 +74,21 @@ fn analytic_gradient_matches_finite_differences_for_every_term() {
             *x += 0.03 * rng.next();
         }
     }
-    let prior = Isometry3::from_parts(Translation3::new(0.2, -0.1, 0.3), UnitQuaternion::from_euler_angles(0.01, -0.02, 0.015));
-    let pose = Isometry3::from_parts(Translation3::new(0.1, 0.05, -0.2), UnitQuaternion::from_euler_angles(-0.01, 0.01, 0.0));
+    let prior = Isometry3::from_parts(
+        Translation3::new(0.2, -0.1, 0.3),
+        UnitQuaternion::from_euler_angles(0.01, -0.02, 0.015),
+    );
+    let pose = Isometry3::from_parts(
+        Translation3::new(0.1, 0.05, -0.2),
+        UnitQuaternion::from_euler_angles(-0.01, 0.01, 0.0),
+    );
     for robust in [Robust::None, Robust::Huber, Robust::Cauchy] {
         let problem = Problem {
-            model: ModelPoints { points: &s.points, normals: &s.normals, bindings: &s.bindings },
+            model: ModelPoints {
+                points: &s.points,
+                normals: &s.normals,
+                bindings: &s.bindings,
+            },
             scan: Some(scan(&s.maps)),
             field: Some(&s.field),
             correspondences: &s.corr,
@@ -62,13 +98,24 @@ fn analytic_gradient_matches_finite_differences_for_every_term() {
             optimize_pose: true,
             robust,
             robust_scale_mm: 0.3,
-            weights: Weights { pose_rot: 0.0, pose_trans: 2.0, point_to_point: 0.1, ..Default::default() },
+            weights: Weights {
+                pose_rot: 0.0,
+                pose_trans: 2.0,
+                point_to_point: 0.1,
+                ..Default::default()
+            },
             ..Default::default()
         };
         let set = SolveSet::all(&graph, true);
         let mut solver = Solver::default();
-        let (_, g, slot, _) = solver.linearize_dense(&graph, &pose, &problem, &set, &params).unwrap();
-        assert!(solver.associations() > 100, "{} associations", solver.associations());
+        let (_, g, slot, _) = solver
+            .linearize_dense(&graph, &pose, &problem, &set, &params)
+            .unwrap();
+        assert!(
+            solver.associations() > 100,
+            "{} associations",
+            solver.associations()
+        );
         let h = 1e-6;
         let mut worst = 0.0f64;
         let scale = g.iter().fold(0.0f64, |m, x| m.max(x.abs()));
@@ -88,15 +135,30 @@ fn analytic_gradient_matches_finite_differences_for_every_term() {
         for q in 0..6 {
             let mut xi = [0.0; 6];
             xi[q] = h;
-            let cp = solver.cost_fixed_association(&graph, &pose_update(&pose, &xi), &problem, &set, &params);
+            let cp = solver.cost_fixed_association(
+                &graph,
+                &pose_update(&pose, &xi),
+                &problem,
+                &set,
+                &params,
+            );
             xi[q] = -h;
-            let cm = solver.cost_fixed_association(&graph, &pose_update(&pose, &xi), &problem, &set, &params);
+            let cm = solver.cost_fixed_association(
+                &graph,
+                &pose_update(&pose, &xi),
+                &problem,
+                &set,
+                &params,
+            );
             let fd = (cp - cm) / (2.0 * h) / 2.0;
             // The pose-prior rotation Jacobian is the identity approximation of J_r^-1 (exact at
             // zero residual); with a residual of 0.03 rad it is off by O(r^2).
             worst = worst.max((fd - g[off + q]).abs() / scale);
         }
-        assert!(worst < 1e-5, "{robust:?}: worst relative gradient error {worst:e}");
+        assert!(
+            worst < 1e-5,
+            "{robust:?}: worst relative gradient error {worst:e}"
+        );
     }
 }
 
@@ -107,7 +169,14 @@ fn gauss_newton_hessian_matches_finite_differences_at_a_zero_residual() {
     // Hessian is exactly 2 J^T W J.
     let (points, tris) = sheet(21, 15, 1.0, 60.0);
     let normals = vertex_normals(&points, &tris);
-    let mut graph = EdGraph::from_points(&points, GraphParams { spacing: 7.0, ..Default::default() }).unwrap();
+    let mut graph = EdGraph::from_points(
+        &points,
+        GraphParams {
+            spacing: 7.0,
+            ..Default::default()
+        },
+    )
+    .unwrap();
     let bindings = graph.bind_all(&points);
     let (r, t) = rigid(0.02, -0.03, 0.05, [0.5, -0.3, 1.0]);
     for j in 0..graph.len() {
@@ -117,11 +186,19 @@ fn gauss_newton_hessian_matches_finite_differences_at_a_zero_residual() {
     let maps = render(&moved, &tris, &Isometry3::identity());
     let corr: Vec<Correspondence> = (0..points.len())
         .step_by(29)
-        .map(|i| Correspondence { point: points[i], binding: bindings[i], target: moved[i] })
+        .map(|i| Correspondence {
+            point: points[i],
+            binding: bindings[i],
+            target: moved[i],
+        })
         .collect();
     let pose = Isometry3::identity();
     let problem = Problem {
-        model: ModelPoints { points: &points, normals: &normals, bindings: &bindings },
+        model: ModelPoints {
+            points: &points,
+            normals: &normals,
+            bindings: &bindings,
+        },
         scan: Some(scan(&maps)),
         field: None,
         correspondences: &corr,
@@ -129,26 +206,40 @@ fn gauss_newton_hessian_matches_finite_differences_at_a_zero_residual() {
     };
     let params = SolverParams {
         optimize_pose: true,
-        weights: Weights { point_to_point: 0.0, pose_rot: 30.0, pose_trans: 3.0, ..Default::default() },
+        weights: Weights {
+            point_to_point: 0.0,
+            pose_rot: 30.0,
+            pose_trans: 3.0,
+            ..Default::default()
+        },
         ..Default::default()
     };
     let set = SolveSet::all(&graph, true);
     let mut solver = Solver::default();
-    let (hm, g, slot, cost) = solver.linearize_dense(&graph, &pose, &problem, &set, &params).unwrap();
+    let (hm, g, slot, cost) = solver
+        .linearize_dense(&graph, &pose, &problem, &set, &params)
+        .unwrap();
     assert!(cost < 1e-6, "residuals are not zero: cost {cost}");
     let n = g.len();
     // Column of the Hessian for a few unknowns by central differences of the analytic gradient.
     let h = 1e-5;
     let mut worst = 0.0f64;
     let hscale = hm.iter().fold(0.0f64, |m, x| m.max(x.abs()));
-    let probes: Vec<(usize, usize)> = (0..graph.len()).step_by(3).flat_map(|j| [(j, 0), (j, 3), (j, 6), (j, 11)]).collect();
+    let probes: Vec<(usize, usize)> = (0..graph.len())
+        .step_by(3)
+        .flat_map(|j| [(j, 0), (j, 3), (j, 6), (j, 11)])
+        .collect();
     for &(j, q) in &probes {
         let mut gp = graph.clone();
         gp.warp[j][q] += h;
         let mut sp = Solver::default();
-        let (_, g_plus, _, _) = sp.linearize_dense(&gp, &pose, &problem, &set, &params).unwrap();
+        let (_, g_plus, _, _) = sp
+            .linearize_dense(&gp, &pose, &problem, &set, &params)
+            .unwrap();
         gp.warp[j][q] -= 2.0 * h;
-        let (_, g_minus, _, _) = sp.linearize_dense(&gp, &pose, &problem, &set, &params).unwrap();
+        let (_, g_minus, _, _) = sp
+            .linearize_dense(&gp, &pose, &problem, &set, &params)
+            .unwrap();
         let col = 12 * slot[j] as usize + q;
         for row in 0..n {
             let fd = (g_plus[row] - g_minus[row]) / (2.0 * h);
@@ -159,9 +250,13 @@ fn gauss_newton_hessian_matches_finite_differences_at_a_zero_residual() {
         let mut xi = [0.0; 6];
         xi[q] = h;
         let mut sp = Solver::default();
-        let (_, g_plus, _, _) = sp.linearize_dense(&graph, &pose_update(&pose, &xi), &problem, &set, &params).unwrap();
+        let (_, g_plus, _, _) = sp
+            .linearize_dense(&graph, &pose_update(&pose, &xi), &problem, &set, &params)
+            .unwrap();
         xi[q] = -h;
-        let (_, g_minus, _, _) = sp.linearize_dense(&graph, &pose_update(&pose, &xi), &problem, &set, &params).unwrap();
+        let (_, g_minus, _, _) = sp
+            .linearize_dense(&graph, &pose_update(&pose, &xi), &problem, &set, &params)
+            .unwrap();
         let col = 12 * graph.len() + q;
         for row in 0..n {
             let fd = (g_plus[row] - g_minus[row]) / (2.0 * h);
@@ -180,16 +275,31 @@ fn recover(
 ) -> ((f64, f64), Info, usize) {
     let (points, tris) = sheet(61, 41, 1.0, 60.0);
     let normals = vertex_normals(&points, &tris);
-    let mut graph = EdGraph::from_points(&points, GraphParams { spacing: 6.0, ..Default::default() }).unwrap();
+    let mut graph = EdGraph::from_points(
+        &points,
+        GraphParams {
+            spacing: 6.0,
+            ..Default::default()
+        },
+    )
+    .unwrap();
     let bindings = graph.bind_all(&points);
     let moved: Vec<Vector3<f64>> = points.iter().map(&truth).collect();
     let maps = render(&moved, &tris, &Isometry3::identity());
     let corr: Vec<Correspondence> = (0..points.len())
         .step_by(corr_step)
-        .map(|i| Correspondence { point: points[i], binding: bindings[i], target: moved[i] })
+        .map(|i| Correspondence {
+            point: points[i],
+            binding: bindings[i],
+            target: moved[i],
+        })
         .collect();
     let problem = Problem {
-        model: ModelPoints { points: &points, normals: &normals, bindings: &bindings },
+        model: ModelPoints {
+            points: &points,
+            normals: &normals,
+            bindings: &bindings,
+        },
         scan: Some(scan(&maps)),
         field: None,
         correspondences: &corr,
@@ -198,17 +308,31 @@ fn recover(
     let params = SolverParams {
         max_iterations: 20,
         min_relative_decrease: 1e-9,
-        weights: Weights { rot: 1.0, reg: 1.0, corr: 1.0, ..Default::default() },
+        weights: Weights {
+            rot: 1.0,
+            reg: 1.0,
+            corr: 1.0,
+            ..Default::default()
+        },
         ..Default::default()
     };
     let mut pose = Isometry3::identity();
     let info = if decoupled {
         let mut s = DecoupledSolver::default();
-        s.solve(&mut graph, &mut pose, &problem, &params, &DecoupledParams::default()).unwrap().combined()
+        s.solve(
+            &mut graph,
+            &mut pose,
+            &problem,
+            &params,
+            &DecoupledParams::default(),
+        )
+        .unwrap()
+        .combined()
     } else {
         let mut s = Solver::default();
         let set = SolveSet::all(&graph, false);
-        s.solve(&mut graph, &mut pose, &problem, &set, &params).unwrap()
+        s.solve(&mut graph, &mut pose, &problem, &set, &params)
+            .unwrap()
     };
     let (mut out, mut on) = (Vec::new(), Vec::new());
     graph.deform(&points, None, &bindings, &mut out, &mut on);
@@ -220,7 +344,10 @@ fn a_rigid_motion_is_recovered_exactly_by_both_solvers() {
     let (r, t) = rigid(0.03, -0.04, 0.05, [2.0, -1.0, 1.5]);
     for decoupled in [false, true] {
         let ((mean, max), info, nodes) = recover(|p| r * p + t, decoupled, 50);
-        assert!(mean < 1e-3 && max < 5e-3, "decoupled {decoupled}: mean {mean} max {max} ({info:?}, {nodes} nodes)");
+        assert!(
+            mean < 1e-3 && max < 5e-3,
+            "decoupled {decoupled}: mean {mean} max {max} ({info:?}, {nodes} nodes)"
+        );
         assert!(info.cost_after < 1e-3 * info.cost_before, "{info:?}");
         // Costs never rise (LM accepts only descending steps; re-association may only help here).
         for w in info.costs.windows(2) {
@@ -235,9 +362,17 @@ fn bend_stretch_and_bump_are_recovered_within_a_tenth_of_their_size() {
     let (r, t) = rigid(0.0, 0.03, -0.02, [1.0, 0.5, -1.0]);
     let cases: Vec<(&str, Field, f64)> = vec![
         // Bend: 3.6 mm at the edges.
-        ("bend", Box::new(|p: &Vector3<f64>| p + Vector3::new(0.0, 0.0, 0.004 * p.x * p.x)), 3.6),
+        (
+            "bend",
+            Box::new(|p: &Vector3<f64>| p + Vector3::new(0.0, 0.0, 0.004 * p.x * p.x)),
+            3.6,
+        ),
         // Stretch along x by 4 %: 1.2 mm at the edges.
-        ("stretch", Box::new(|p: &Vector3<f64>| Vector3::new(1.04 * p.x, p.y, p.z)), 1.2),
+        (
+            "stretch",
+            Box::new(|p: &Vector3<f64>| Vector3::new(1.04 * p.x, p.y, p.z)),
+            1.2,
+        ),
         // A 3 mm Gaussian bump (sigma 8 mm) after a rigid motion.
         (
             "rigid+bump",
@@ -250,8 +385,14 @@ fn bend_stretch_and_bump_are_recovered_within_a_tenth_of_their_size() {
     ];
     for (name, f, size) in cases {
         let ((mean, max), info, _) = recover(&f, false, 20);
-        eprintln!("{name}: mean {mean:.4} mm, max {max:.4} mm, {} iterations, cost {:.3e} -> {:.3e}", info.iterations, info.cost_before, info.cost_after);
-        assert!(mean < 0.1 * size / 3.0 && max < 0.3 * size, "{name}: mean {mean} max {max}");
+        eprintln!(
+            "{name}: mean {mean:.4} mm, max {max:.4} mm, {} iterations, cost {:.3e} -> {:.3e}",
+            info.iterations, info.cost_before, info.cost_after
+        );
+        assert!(
+            mean < 0.1 * size / 3.0 && max < 0.3 * size,
+            "{name}: mean {mean} max {max}"
+        );
     }
 }
 
@@ -260,7 +401,11 @@ fn the_symbolic_factorisation_is_reused_while_the_pattern_is_unchanged() {
     let s = small_scene();
     let mut graph = s.graph.clone();
     let problem = Problem {
-        model: ModelPoints { points: &s.points, normals: &s.normals, bindings: &s.bindings },
+        model: ModelPoints {
+            points: &s.points,
+            normals: &s.normals,
+            bindings: &s.bindings,
+        },
         scan: Some(scan(&s.maps)),
         field: None,
         correspondences: &s.corr,
@@ -270,20 +415,41 @@ fn the_symbolic_factorisation_is_reused_while_the_pattern_is_unchanged() {
     let mut solver = Solver::default();
     let mut pose = Isometry3::identity();
     let set = SolveSet::all(&graph, false);
-    let a = solver.solve(&mut graph, &mut pose, &problem, &set, &params).unwrap();
+    let a = solver
+        .solve(&mut graph, &mut pose, &problem, &set, &params)
+        .unwrap();
     assert!(a.iterations >= 2);
     assert_eq!(a.symbolic_builds, 1);
     graph.reset();
-    let b = solver.solve(&mut graph, &mut pose, &problem, &set, &params).unwrap();
-    assert_eq!(b.symbolic_builds, 0, "same pattern: no new symbolic factorisation");
-    assert_eq!(a.cost_after, b.cost_after, "the reused factorisation gives the same result");
+    let b = solver
+        .solve(&mut graph, &mut pose, &problem, &set, &params)
+        .unwrap();
+    assert_eq!(
+        b.symbolic_builds, 0,
+        "same pattern: no new symbolic factorisation"
+    );
+    assert_eq!(
+        a.cost_after, b.cost_after,
+        "the reused factorisation gives the same result"
+    );
     // A grown graph changes the pattern.
-    let far: Vec<Vector3<f64>> = (0..10).map(|i| Vector3::new(30.0 + i as f64, 0.0, 60.0)).collect();
+    let far: Vec<Vector3<f64>> = (0..10)
+        .map(|i| Vector3::new(30.0 + i as f64, 0.0, 60.0))
+        .collect();
     graph.grow(&far);
     let bindings = graph.bind_all(&s.points);
-    let problem = Problem { model: ModelPoints { bindings: &bindings, ..problem.model }, correspondences: &[], ..problem };
+    let problem = Problem {
+        model: ModelPoints {
+            bindings: &bindings,
+            ..problem.model
+        },
+        correspondences: &[],
+        ..problem
+    };
     let set = SolveSet::all(&graph, false);
-    let c = solver.solve(&mut graph, &mut pose, &problem, &set, &params).unwrap();
+    let c = solver
+        .solve(&mut graph, &mut pose, &problem, &set, &params)
+        .unwrap();
     assert_eq!(c.symbolic_builds, 1);
 }
 
@@ -296,7 +462,14 @@ fn decoupled_solves_only_the_seen_nodes_first_and_the_unseen_follow_rigidly() {
     let moved: Vec<Vector3<f64>> = points.iter().map(|p| r * p + t).collect();
     let maps = render(&moved, &tris, &Isometry3::identity());
     let seen: Vec<usize> = (0..points.len()).filter(|&i| points[i].x < -5.0).collect();
-    let base = EdGraph::from_points(&points, GraphParams { spacing: 6.0, ..Default::default() }).unwrap();
+    let base = EdGraph::from_points(
+        &points,
+        GraphParams {
+            spacing: 6.0,
+            ..Default::default()
+        },
+    )
+    .unwrap();
     let all_bindings = base.bind_all(&points);
     let sp: Vec<Vector3<f64>> = seen.iter().map(|&i| points[i]).collect();
     let sn: Vec<Vector3<f64>> = seen.iter().map(|&i| normals[i]).collect();
@@ -304,37 +477,77 @@ fn decoupled_solves_only_the_seen_nodes_first_and_the_unseen_follow_rigidly() {
     let corr: Vec<Correspondence> = seen
         .iter()
         .step_by(15)
-        .map(|&i| Correspondence { point: points[i], binding: all_bindings[i], target: moved[i] })
+        .map(|&i| Correspondence {
+            point: points[i],
+            binding: all_bindings[i],
+            target: moved[i],
+        })
         .collect();
     let problem = Problem {
-        model: ModelPoints { points: &sp, normals: &sn, bindings: &sb },
+        model: ModelPoints {
+            points: &sp,
+            normals: &sn,
+            bindings: &sb,
+        },
         scan: Some(scan(&maps)),
         field: None,
         correspondences: &corr,
         pose_prior: Isometry3::identity(),
     };
-    let params = SolverParams { max_iterations: 15, min_relative_decrease: 1e-9, ..Default::default() };
+    let params = SolverParams {
+        max_iterations: 15,
+        min_relative_decrease: 1e-9,
+        ..Default::default()
+    };
     let unseen: Vec<usize> = (0..points.len()).filter(|&i| points[i].x > 5.0).collect();
     let err_unseen = |g: &EdGraph| {
-        let d: Vec<f64> = unseen.iter().map(|&i| (g.warp_point(&points[i], &all_bindings[i]) - moved[i]).norm()).collect();
+        let d: Vec<f64> = unseen
+            .iter()
+            .map(|&i| (g.warp_point(&points[i], &all_bindings[i]) - moved[i]).norm())
+            .collect();
         d.iter().sum::<f64>() / d.len() as f64
     };
     let err_seen = |g: &EdGraph| {
-        let d: Vec<f64> = seen.iter().map(|&i| (g.warp_point(&points[i], &all_bindings[i]) - moved[i]).norm()).collect();
+        let d: Vec<f64> = seen
+            .iter()
+            .map(|&i| (g.warp_point(&points[i], &all_bindings[i]) - moved[i]).norm())
+            .collect();
         d.iter().sum::<f64>() / d.len() as f64
     };
     let mut batch = base.clone();
     let mut pose = Isometry3::identity();
     let set = SolveSet::all(&batch, false);
-    Solver::default().solve(&mut batch, &mut pose, &problem, &set, &params).unwrap();
+    Solver::default()
+        .solve(&mut batch, &mut pose, &problem, &set, &params)
+        .unwrap();
     let mut dec = base.clone();
-    let pr = misslam_deformation_ed::decoupled::relevant_nodes(&dec, &problem).iter().filter(|&&x| x).count();
+    let pr = misslam_deformation_ed::decoupled::relevant_nodes(&dec, &problem)
+        .iter()
+        .filter(|&&x| x)
+        .count();
     let info = DecoupledSolver::default()
-        .solve(&mut dec, &mut pose, &problem, &params, &DecoupledParams { level2_rings: 0, level2_iterations: 4, ..Default::default() })
+        .solve(
+            &mut dec,
+            &mut pose,
+            &problem,
+            &params,
+            &DecoupledParams {
+                level2_rings: 0,
+                level2_iterations: 4,
+                ..Default::default()
+            },
+        )
         .unwrap();
     assert_eq!(info.pr_nodes, pr);
-    assert!(info.pr_nodes < dec.len() && info.pi_solved == dec.len() - pr, "{info:?}");
-    let motion = unseen.iter().map(|&i| (moved[i] - points[i]).norm()).sum::<f64>() / unseen.len() as f64;
+    assert!(
+        info.pr_nodes < dec.len() && info.pi_solved == dec.len() - pr,
+        "{info:?}"
+    );
+    let motion = unseen
+        .iter()
+        .map(|&i| (moved[i] - points[i]).norm())
+        .sum::<f64>()
+        / unseen.len() as f64;
     eprintln!(
         "seen: batch {:.4} decoupled {:.4}; unseen: batch {:.4} decoupled {:.4} (motion {motion:.2} mm)",
         err_seen(&batch),
@@ -343,14 +556,28 @@ fn decoupled_solves_only_the_seen_nodes_first_and_the_unseen_follow_rigidly() {
         err_unseen(&dec)
     );
     assert!(err_seen(&dec) < 0.02 && err_seen(&batch) < 0.02);
-    assert!(err_unseen(&dec) < 0.05 * motion, "the unseen part follows the rigid motion");
+    assert!(
+        err_unseen(&dec) < 0.05 * motion,
+        "the unseen part follows the rigid motion"
+    );
     // Untouched nodes (none here, rings = 0) and a bounded level II: with 1 ring only the nodes
     // next to PR move.
     let mut ring = base.clone();
     let info = DecoupledSolver::default()
-        .solve(&mut ring, &mut pose, &problem, &params, &DecoupledParams { level2_rings: 1, ..Default::default() })
+        .solve(
+            &mut ring,
+            &mut pose,
+            &problem,
+            &params,
+            &DecoupledParams {
+                level2_rings: 1,
+                ..Default::default()
+            },
+        )
         .unwrap();
-    let moved_nodes = (0..ring.len()).filter(|&j| ring.warp[j] != base.warp[j]).count();
+    let moved_nodes = (0..ring.len())
+        .filter(|&j| ring.warp[j] != base.warp[j])
+        .count();
     assert_eq!(moved_nodes, info.pr_nodes + info.pi_solved);
     assert!(info.pi_solved < dec.len() - pr);
 }
@@ -361,17 +588,39 @@ fn the_camera_pose_alone_is_recovered_by_the_pose_unknowns() {
     // and weakly weighted, no node is solved: the data terms must bring the pose back.
     let (points, tris) = sheet(61, 41, 1.0, 60.0);
     let normals = vertex_normals(&points, &tris);
-    let graph0 = EdGraph::from_points(&points, GraphParams { spacing: 6.0, ..Default::default() }).unwrap();
+    let graph0 = EdGraph::from_points(
+        &points,
+        GraphParams {
+            spacing: 6.0,
+            ..Default::default()
+        },
+    )
+    .unwrap();
     let bindings = graph0.bind_all(&points);
-    let truth = Isometry3::from_parts(Translation3::new(1.0, -0.5, 2.0), UnitQuaternion::from_euler_angles(0.02, -0.01, 0.03));
+    let truth = Isometry3::from_parts(
+        Translation3::new(1.0, -0.5, 2.0),
+        UnitQuaternion::from_euler_angles(0.02, -0.01, 0.03),
+    );
     let maps = render(&points, &tris, &truth);
     let corr: Vec<Correspondence> = (0..points.len())
         .step_by(40)
-        .map(|i| Correspondence { point: points[i], binding: bindings[i], target: truth.inverse_transform_point(&points[i].into()).coords })
+        .map(|i| Correspondence {
+            point: points[i],
+            binding: bindings[i],
+            target: truth.inverse_transform_point(&points[i].into()).coords,
+        })
         .collect();
-    let prior = truth * Isometry3::from_parts(Translation3::new(0.6, 0.5, -0.5), UnitQuaternion::from_euler_angles(0.01, 0.012, -0.008));
+    let prior = truth
+        * Isometry3::from_parts(
+            Translation3::new(0.6, 0.5, -0.5),
+            UnitQuaternion::from_euler_angles(0.01, 0.012, -0.008),
+        );
     let problem = Problem {
-        model: ModelPoints { points: &points, normals: &normals, bindings: &bindings },
+        model: ModelPoints {
+            points: &points,
+            normals: &normals,
+            bindings: &bindings,
+        },
         scan: Some(scan(&maps)),
         field: None,
         correspondences: &corr,
@@ -381,16 +630,32 @@ fn the_camera_pose_alone_is_recovered_by_the_pose_unknowns() {
         optimize_pose: true,
         max_iterations: 20,
         min_relative_decrease: 1e-12,
-        weights: Weights { pose_rot: 1e-6, pose_trans: 1e-6, ..Default::default() },
+        weights: Weights {
+            pose_rot: 1e-6,
+            pose_trans: 1e-6,
+            ..Default::default()
+        },
         ..Default::default()
     };
     let mut graph = graph0.clone();
     let mut pose = prior;
-    let set = SolveSet { free: vec![], reg_edges: vec![], data: true, pose: true };
-    let info = Solver::default().solve(&mut graph, &mut pose, &problem, &set, &params).unwrap();
+    let set = SolveSet {
+        free: vec![],
+        reg_edges: vec![],
+        data: true,
+        pose: true,
+    };
+    let info = Solver::default()
+        .solve(&mut graph, &mut pose, &problem, &set, &params)
+        .unwrap();
     let dt = (pose.translation.vector - truth.translation.vector).norm();
-    let dr = (pose.rotation.inverse() * truth.rotation).angle().to_degrees();
-    assert!(dt < 1e-3 && dr < 1e-3, "pose error {dt} mm, {dr} deg ({info:?})");
+    let dr = (pose.rotation.inverse() * truth.rotation)
+        .angle()
+        .to_degrees();
+    assert!(
+        dt < 1e-3 && dr < 1e-3,
+        "pose error {dt} mm, {dr} deg ({info:?})"
+    );
 }
 
 #[test]
@@ -398,7 +663,11 @@ fn bad_input_is_an_error_not_a_panic() {
     let s = small_scene();
     let mut graph = s.graph.clone();
     let problem = Problem {
-        model: ModelPoints { points: &s.points, normals: &s.normals, bindings: &s.bindings[..3] },
+        model: ModelPoints {
+            points: &s.points,
+            normals: &s.normals,
+            bindings: &s.bindings[..3],
+        },
         scan: None,
         field: None,
         correspondences: &[],
@@ -406,21 +675,56 @@ fn bad_input_is_an_error_not_a_panic() {
     };
     let mut pose = Isometry3::identity();
     let set = SolveSet::all(&graph, false);
-    let e = Solver::default().solve(&mut graph, &mut pose, &problem, &set, &SolverParams::default()).unwrap_err();
+    let e = Solver::default()
+        .solve(
+            &mut graph,
+            &mut pose,
+            &problem,
+            &set,
+            &SolverParams::default(),
+        )
+        .unwrap_err();
     assert!(e.contains("bindings"), "{e}");
-    let bad = SolverParams { weights: Weights { reg: f64::NAN, ..Default::default() }, ..Default::default() };
+    let bad = SolverParams {
+        weights: Weights {
+            reg: f64::NAN,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
     let e = bad.validate().unwrap_err();
     assert!(e.contains("weights.reg"), "{e}");
     assert!(EdGraph::from_points(&[], GraphParams::default()).is_err());
-    assert!(GraphParams { point_neighbors: 9, ..Default::default() }.validate().unwrap_err().contains("point_neighbors"));
+    assert!(GraphParams {
+        point_neighbors: 9,
+        ..Default::default()
+    }
+    .validate()
+    .unwrap_err()
+    .contains("point_neighbors"));
     // A scan with NaN everywhere associates nothing and the solve still returns.
-    let nan = (vec![[f32::NAN; 3]; (W * H) as usize], vec![[f32::NAN; 3]; (W * H) as usize]);
+    let nan = (
+        vec![[f32::NAN; 3]; (W * H) as usize],
+        vec![[f32::NAN; 3]; (W * H) as usize],
+    );
     let problem = Problem {
-        model: ModelPoints { points: &s.points, normals: &s.normals, bindings: &s.bindings },
+        model: ModelPoints {
+            points: &s.points,
+            normals: &s.normals,
+            bindings: &s.bindings,
+        },
         scan: Some(scan(&nan)),
         ..problem
     };
-    let info = Solver::default().solve(&mut graph, &mut pose, &problem, &set, &SolverParams::default()).unwrap();
+    let info = Solver::default()
+        .solve(
+            &mut graph,
+            &mut pose,
+            &problem,
+            &set,
+            &SolverParams::default(),
+        )
+        .unwrap();
     assert_eq!(info.data_terms, 0);
     assert!(graph.warp.iter().flatten().all(|x| x.is_finite()));
 }

@@ -177,7 +177,10 @@ pub fn scan_maps(
         if !z.is_finite() {
             continue;
         }
-        let (u, v) = ((i % view.width as usize) as f32, (i / view.width as usize) as f32);
+        let (u, v) = (
+            (i % view.width as usize) as f32,
+            (i / view.width as usize) as f32,
+        );
         let p = [(u - view.cx) / view.fx * z, (v - view.cy) / view.fy * z, z];
         let (a, b, c) = (cam[t[0] as usize], cam[t[1] as usize], cam[t[2] as usize]);
         let e1 = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
@@ -188,7 +191,7 @@ pub fn scan_maps(
             e1[0] * e2[1] - e1[1] * e2[0],
         ];
         let len = (nn[0] * nn[0] + nn[1] * nn[1] + nn[2] * nn[2]).sqrt();
-        if !(len > 0.0) {
+        if len.is_nan() || len <= 0.0 {
             continue;
         }
         let facing = nn[0] * p[0] + nn[1] * p[1] + nn[2] * p[2];

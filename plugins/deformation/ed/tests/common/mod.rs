@@ -10,7 +10,14 @@ pub const W: u32 = 160;
 pub const H: u32 = 120;
 
 pub fn intrinsics() -> Intrinsics {
-    Intrinsics { fx: 150.0, fy: 150.0, cx: 79.5, cy: 59.5, width: W, height: H }
+    Intrinsics {
+        fx: 150.0,
+        fy: 150.0,
+        cx: 79.5,
+        cy: 59.5,
+        width: W,
+        height: H,
+    }
 }
 
 /// A (nx x ny) grid sheet with `step` mm spacing, centred on x, y = 0 at depth z0, and its triangles.
@@ -61,7 +68,11 @@ pub fn vertex_normals(v: &[Vector3<f64>], t: &[[u32; 3]]) -> Vec<Vector3<f64>> {
 }
 
 /// Renders world-frame vertices seen from `world_from_camera` into scan maps (camera frame).
-pub fn render(v: &[Vector3<f64>], t: &[[u32; 3]], world_from_camera: &Isometry3<f64>) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
+pub fn render(
+    v: &[Vector3<f64>],
+    t: &[[u32; 3]],
+    world_from_camera: &Isometry3<f64>,
+) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
     let k = intrinsics();
     let view = View {
         fx: k.fx as f32,
@@ -72,7 +83,10 @@ pub fn render(v: &[Vector3<f64>], t: &[[u32; 3]], world_from_camera: &Isometry3<
         height: H,
         camera_from_world: world_from_camera.inverse().cast::<f32>(),
     };
-    let verts: Vec<[f32; 3]> = v.iter().map(|p| [p.x as f32, p.y as f32, p.z as f32]).collect();
+    let verts: Vec<[f32; 3]> = v
+        .iter()
+        .map(|p| [p.x as f32, p.y as f32, p.z as f32])
+        .collect();
     let mut r = Raster::default();
     let mut cam = Vec::new();
     rasterize(&view, &verts, t, &mut cam, &mut r);
@@ -80,20 +94,30 @@ pub fn render(v: &[Vector3<f64>], t: &[[u32; 3]], world_from_camera: &Isometry3<
 }
 
 pub fn scan<'a>(maps: &'a (Vec<[f32; 3]>, Vec<[f32; 3]>)) -> Scan<'a> {
-    Scan { intrinsics: intrinsics(), vertices: &maps.0, normals: &maps.1 }
+    Scan {
+        intrinsics: intrinsics(),
+        vertices: &maps.0,
+        normals: &maps.1,
+    }
 }
 
 /// Mean and max distance between two point lists.
 pub fn errors(a: &[Vector3<f64>], b: &[Vector3<f64>]) -> (f64, f64) {
     let d: Vec<f64> = a.iter().zip(b).map(|(x, y)| (x - y).norm()).collect();
-    (d.iter().sum::<f64>() / d.len() as f64, d.iter().cloned().fold(0.0, f64::max))
+    (
+        d.iter().sum::<f64>() / d.len() as f64,
+        d.iter().cloned().fold(0.0, f64::max),
+    )
 }
 
 /// Deterministic uniform numbers in [-1, 1].
 pub struct Lcg(pub u64);
 impl Lcg {
     pub fn next(&mut self) -> f64 {
-        self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         ((self.0 >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
     }
 }
