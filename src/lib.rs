@@ -56,6 +56,8 @@ mod tests {
         assert_eq!(
             ids,
             [
+                "deformation.batch",
+                "deformation.decoupled",
                 "depth.sgm",
                 "eval.depth",
                 "eval.recon",
