@@ -12,18 +12,7 @@ fn run_deform(plugin: &str) -> serde_json::Value {
         "graph.frames.count=6".to_string(),
         format!("ed.plugin={plugin}"),
     ];
-    let g = graph::load(
-        Path::new("graphs/deform_heart.toml"),
-        &misslam::builtin_registry(),
-        &sets,
-    )
-    .unwrap();
-    let report = common::run_graph(g, &out);
-    assert!(
-        report.error.is_none(),
-        "{:?}",
-        report.error.map(|e| e.to_string())
-    );
+    let report = common::run_graph_file("graphs/deform_heart.toml", &sets, &out);
     assert_eq!(report.metrics.frames.processed, 6);
     serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap()
 }
@@ -37,7 +26,10 @@ fn both_ed_solvers_track_the_phantom_heart_template() {
         println!("{plugin}: recon.mean_mm {mean:.3}, p95 {p95:.3}");
         // Measured 0.16 / 0.44 mm over 30 frames (heartbeat 3 mm, sweeping scope).
         assert!(mean < 0.25 && p95 < 0.8, "{plugin}: mean {mean} p95 {p95}");
-        assert!(m["timing_ms"]["ed"]["mean_ms"].as_f64().unwrap() > 0.0);
+        assert!(
+            m["timing_ms"]["ed"]["mean_ms"].is_f64(),
+            "the ED node is timed"
+        );
     }
 }
 

@@ -106,8 +106,7 @@ fn example_plugin_loads_runs_and_reports_panics() {
     let mut registry = builtin_registry();
     registry.register(images_plugin()).unwrap();
     let g = graph::parse(Path::new("dyn.toml"), &text, &registry, &[]).expect("valid");
-    let report = common::run_graph(g, &common::tmp_dir("dyn-graph"));
-    assert!(report.error.is_none());
+    let report = common::run_graph_ok(g, &common::tmp_dir("dyn-graph"));
     assert_eq!(report.metrics.frames.processed, 2);
     let skipped = &report.metrics.frames.skipped_frames;
     assert_eq!(skipped.len(), 1);

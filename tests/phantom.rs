@@ -17,18 +17,7 @@ fn phantom_graph_runs_end_to_end() {
     let out = common::tmp_dir("phantom-graph");
     let mut sets: Vec<String> = SMALL.iter().map(|s| s.to_string()).collect();
     sets.push("graph.frames.count=3".into());
-    let g = graph::load(
-        Path::new("graphs/phantom.toml"),
-        &misslam::builtin_registry(),
-        &sets,
-    )
-    .unwrap();
-    let report = common::run_graph(g, &out);
-    assert!(
-        report.error.is_none(),
-        "{:?}",
-        report.error.map(|e| e.to_string())
-    );
+    let report = common::run_graph_file("graphs/phantom.toml", &sets, &out);
     assert_eq!(report.metrics.frames.processed, 3);
     assert!(out.join("files/left/000000.png").is_file());
     assert!(out.join("files/depth/000000.pfm").is_file());
@@ -136,12 +125,7 @@ inputs = { pose = "src.pose_gt", pose_gt = "src.pose_gt" }
         &[],
     )
     .unwrap();
-    let report = common::run_graph(g, &out);
-    assert!(
-        report.error.is_none(),
-        "{:?}",
-        report.error.map(|e| e.to_string())
-    );
+    common::run_graph_ok(g, &out);
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
     let eval = &json["eval"];
@@ -289,13 +273,11 @@ fn sgm_on_the_phantom_regression() {
         .map(|s| s.to_string())
         .chain([format!("src.noise_sigma={noise}")])
         .collect();
-        let g = graph::load(
-            Path::new("graphs/depth_sgm_phantom.toml"),
-            &misslam::builtin_registry(),
+        let report = common::run_graph_file(
+            "graphs/depth_sgm_phantom.toml",
             &sets,
-        )
-        .unwrap();
-        let report = common::run_graph(g, &common::tmp_dir(&format!("sgm-phantom-{noise}")));
+            &common::tmp_dir(&format!("sgm-phantom-{noise}")),
+        );
         let eval = &report.metrics.eval;
         let (bad2v, density) = (eval["depth.bad2_valid_pct"], eval["depth.density_pct"]);
         println!(

@@ -60,6 +60,22 @@ pub fn run_graph(g: misslam::framework::Graph, out: &Path) -> misslam::framework
         .expect("metrics could be written")
 }
 
+/// Runs a graph that must succeed: the run's error, if any, fails the test with its message.
+pub fn run_graph_ok(g: misslam::framework::Graph, out: &Path) -> misslam::framework::RunReport {
+    let report = run_graph(g, out);
+    if let Some(e) = &report.error {
+        panic!("the run failed: {e}");
+    }
+    report
+}
+
+/// Loads a graph file with `--set` overrides (it must be valid) and runs it (it must succeed).
+pub fn run_graph_file(path: &str, sets: &[String], out: &Path) -> misslam::framework::RunReport {
+    let g = misslam::framework::graph::load(Path::new(path), &misslam::builtin_registry(), sets)
+        .unwrap_or_else(|e| panic!("{path}: {e}"));
+    run_graph_ok(g, out)
+}
+
 /// Verifies a recording with the rerun CLI (`rrd verify`) and returns a function printing it
 /// (`rrd print FLAG`); `None`, with the reason printed, when there is no CLI.
 pub fn rerun_verified(rrd: &Path) -> Option<impl Fn(&str) -> String + '_> {

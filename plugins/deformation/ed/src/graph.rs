@@ -12,7 +12,7 @@
 //! (`P[r * 4 + c]`, column 3 is t), the layout the solver's Jacobians use.
 
 use crate::knn::GridIndex;
-use misslam_framework::nalgebra::{Matrix3, Vector3};
+use misslam_framework::nalgebra::{Matrix3, Rotation3, Vector3};
 use rayon::prelude::*;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -323,17 +323,22 @@ impl EdGraph {
         out
     }
 
+    /// [`Self::normal_matrices`] into a reused buffer.
+    pub fn normal_matrices_into(&self, out: &mut Vec<Matrix3<f64>>) {
+        out.clear();
+        out.extend(self.warp.iter().map(|p| {
+            affine(p)
+                .try_inverse()
+                .map(|m| m.transpose())
+                .unwrap_or_else(Matrix3::identity)
+        }));
+    }
+
     /// A^-T of every node (for normals); a singular A maps normals as the identity would.
     pub fn normal_matrices(&self) -> Vec<Matrix3<f64>> {
-        self.warp
-            .iter()
-            .map(|p| {
-                affine(p)
-                    .try_inverse()
-                    .map(|m| m.transpose())
-                    .unwrap_or_else(Matrix3::identity)
-            })
-            .collect()
+        let mut m = Vec::new();
+        self.normal_matrices_into(&mut m);
+        m
     }
 
     /// The warped unit normal of `n` bound by `b`, given [`Self::normal_matrices`].
@@ -396,7 +401,10 @@ impl EdGraph {
         let eps = self.params.spacing;
         let far: Vec<Vector3<f64>> = points
             .iter()
-            .filter(|v| v.iter().all(|c| c.is_finite()) && self.nearest_node_distance(v) > eps)
+            .filter(|v| {
+                v.iter().all(|c| c.is_finite())
+                    && self.index.nearest_within(&self.nodes, v, eps).is_none()
+            })
             .copied()
             .collect();
         if far.is_empty() {
@@ -413,7 +421,10 @@ impl EdGraph {
                 if b.len == 0 {
                     return IDENTITY;
                 }
-                let near = self.nearest_node_distance(g) <= 2.0 * eps;
+                let near = self
+                    .index
+                    .nearest_within(&self.nodes, g, 2.0 * eps)
+                    .is_some();
                 let mut p = if near { [0.0; 12] } else { IDENTITY };
                 let mut t = Vector3::zeros();
                 for (j, w) in b.iter() {
@@ -441,6 +452,17 @@ impl EdGraph {
         self.rebuild();
         added
     }
+}
+
+/// A rigid transform as a node warp about `g`: A = R, t = R g + t - g, so the node maps v to
+/// R v + t.
+pub fn rigid_warp(rotation: &Rotation3<f64>, t: &Vector3<f64>, g: &Vector3<f64>) -> [f64; 12] {
+    let m = rotation.matrix();
+    let tj = rotation * g + t - g;
+    let (a, b, c) = (m.row(0), m.row(1), m.row(2));
+    [
+        a[0], a[1], a[2], tj.x, b[0], b[1], b[2], tj.y, c[0], c[1], c[2], tj.z,
+    ]
 }
 
 /// Greedy Poisson-disc sample of `points` at radius `eps`, keeping clear of `existing` nodes too.
@@ -654,24 +676,7 @@ mod tests {
         let r = misslam_framework::nalgebra::Rotation3::from_euler_angles(0.2, -0.1, 0.3);
         let t = Vector3::new(3.0, -2.0, 5.0);
         for j in 0..g.len() {
-            // A = R, t_j = R g + t - g, so A (v - g) + g + t_j = R v + t.
-            let gj = g.nodes()[j];
-            let tj = r * gj + t - gj;
-            let m = r.matrix();
-            g.warp[j] = [
-                m[(0, 0)],
-                m[(0, 1)],
-                m[(0, 2)],
-                tj.x,
-                m[(1, 0)],
-                m[(1, 1)],
-                m[(1, 2)],
-                tj.y,
-                m[(2, 0)],
-                m[(2, 1)],
-                m[(2, 2)],
-                tj.z,
-            ];
+            g.warp[j] = rigid_warp(&r, &t, &g.nodes()[j]);
         }
         let b = g.bind_all(&pts);
         let n = vec![Vector3::new(0.0, 0.6, 0.8); pts.len()];

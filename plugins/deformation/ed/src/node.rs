@@ -8,7 +8,7 @@
 
 use crate::decoupled::{DecoupledParams, DecoupledSolver};
 use crate::graph::{Binding, EdGraph, GraphParams};
-use crate::observe::{scan_from_depth, visible_points};
+use crate::observe::{mesh_normals, scan_from_depth_into, visible_points};
 use crate::problem::{Intrinsics, ModelPoints, Problem, Scan, SolverParams};
 use crate::solver::{Info, SolveSet, Solver};
 use misslam_framework::nalgebra::{Isometry3, Point3, Vector3};
@@ -100,11 +100,22 @@ struct Model {
     graph: EdGraph,
 }
 
+/// Per-frame buffers, kept between frames.
+#[derive(Default)]
+struct Scratch {
+    vertices: Vec<[f32; 3]>,
+    normals: Vec<[f32; 3]>,
+    points: Vec<Vector3<f64>>,
+    point_normals: Vec<Vector3<f64>>,
+    bindings: Vec<Binding>,
+}
+
 /// The node behind both plugin ids.
 pub struct EdNode {
     common: BatchParams,
     engine: Engine,
     model: Option<Model>,
+    scratch: Scratch,
 }
 
 fn param_err(path: &str, message: String) -> BuildError {
@@ -144,27 +155,12 @@ fn intrinsics(d: &DepthMap) -> Intrinsics {
     }
 }
 
-/// Area-weighted vertex normals of a mesh (unit; zero-area fans get NaN).
-fn mesh_normals(v: &[Vector3<f64>], t: &[[u32; 3]]) -> Vec<Vector3<f64>> {
-    let mut n = vec![Vector3::zeros(); v.len()];
-    for tri in t {
-        let (a, b, c) = (v[tri[0] as usize], v[tri[1] as usize], v[tri[2] as usize]);
-        let f = (b - a).cross(&(c - a));
-        for &i in tri {
-            n[i as usize] += f;
-        }
-    }
-    n.iter()
-        .map(|x| x.try_normalize(1e-12).unwrap_or(Vector3::repeat(f64::NAN)))
-        .collect()
-}
-
 impl EdNode {
     fn init_model(
         &self,
         template: Option<&Mesh>,
         depth: &DepthMap,
-        scan: &(Vec<[f32; 3]>, Vec<[f32; 3]>),
+        scan: (&[[f32; 3]], &[[f32; 3]]),
         pose: &Isometry3<f64>,
     ) -> Result<Model, String> {
         let (points, normals, triangles) = if let Some(mesh) = template {
@@ -257,12 +253,45 @@ impl Node for EdNode {
                 );
             }
         }
+        let mut scratch = std::mem::take(&mut self.scratch);
+        let result = self.solve_frame(frame, inputs, outputs, depth, k, prior, &mut scratch);
+        self.scratch = scratch;
+        result
+    }
+}
+
+impl EdNode {
+    #[allow(clippy::too_many_arguments)]
+    fn solve_frame(
+        &mut self,
+        frame: FrameInfo,
+        inputs: &Inputs,
+        outputs: &mut Outputs,
+        depth: &DepthMap,
+        k: Intrinsics,
+        prior: Option<&std::sync::Arc<Pose>>,
+        scratch: &mut Scratch,
+    ) -> NodeResult<Flow> {
         let prior_pose = prior.map_or(Isometry3::identity(), |p| p.world_from_camera);
-        let scan = scan_from_depth(&depth.map.data, &k, self.common.normal_max_step_mm);
+        let Scratch {
+            vertices,
+            normals,
+            points: lp,
+            point_normals: ln,
+            bindings: lb,
+        } = scratch;
+        scan_from_depth_into(
+            &depth.map.data,
+            &k,
+            self.common.normal_max_step_mm,
+            vertices,
+            normals,
+        );
+        let scan = (vertices.as_slice(), normals.as_slice());
         if self.model.is_none() {
             let template = inputs.opt::<Mesh>("template")?;
             let m = self
-                .init_model(template.map(|a| a.as_ref()), depth, &scan, &prior_pose)
+                .init_model(template.map(|a| a.as_ref()), depth, scan, &prior_pose)
                 .map_err(NodeError::msg)?;
             self.model = Some(m);
         }
@@ -277,27 +306,27 @@ impl Node for EdNode {
             &model.bindings,
             &prior_pose,
             &k,
-            &scan.0,
-            &scan.1,
+            scan.0,
+            scan.1,
             c.visible_distance_mm,
             c.visible_angle_deg,
         );
-        let lp: Vec<Vector3<f64>> = visible.iter().map(|&i| model.points[i as usize]).collect();
-        let ln: Vec<Vector3<f64>> = visible.iter().map(|&i| model.normals[i as usize]).collect();
-        let lb: Vec<Binding> = visible
-            .iter()
-            .map(|&i| model.bindings[i as usize])
-            .collect();
+        lp.clear();
+        lp.extend(visible.iter().map(|&i| model.points[i as usize]));
+        ln.clear();
+        ln.extend(visible.iter().map(|&i| model.normals[i as usize]));
+        lb.clear();
+        lb.extend(visible.iter().map(|&i| model.bindings[i as usize]));
         let problem = Problem {
             model: ModelPoints {
-                points: &lp,
-                normals: &ln,
-                bindings: &lb,
+                points: lp,
+                normals: ln,
+                bindings: lb,
             },
             scan: Some(Scan {
                 intrinsics: k,
-                vertices: &scan.0,
-                normals: &scan.1,
+                vertices: scan.0,
+                normals: scan.1,
             }),
             field: None,
             correspondences: &[],
@@ -464,6 +493,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
                 common: p,
                 engine: Engine::Batch(Box::default()),
                 model: None,
+                scratch: Scratch::default(),
             })
         },
     ))?;
@@ -482,7 +512,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
                 visible_angle_deg: p.visible_angle_deg,
             };
             check(&common)?;
-            Ok(EdNode { common, engine: Engine::Decoupled(Box::default(), p.decoupled), model: None })
+            Ok(EdNode { common, engine: Engine::Decoupled(Box::default(), p.decoupled), model: None, scratch: Scratch::default() })
         },
     ))
 }

@@ -15,6 +15,19 @@ pub fn scan_from_depth(
     k: &Intrinsics,
     max_step_mm: f32,
 ) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
+    let (mut vertices, mut normals) = (Vec::new(), Vec::new());
+    scan_from_depth_into(depth, k, max_step_mm, &mut vertices, &mut normals);
+    (vertices, normals)
+}
+
+/// [`scan_from_depth`] into reused buffers (a node calls it every frame).
+pub fn scan_from_depth_into(
+    depth: &[f32],
+    k: &Intrinsics,
+    max_step_mm: f32,
+    vertices: &mut Vec<[f32; 3]>,
+    normals: &mut Vec<[f32; 3]>,
+) {
     let (w, h) = (k.width as usize, k.height as usize);
     let nan = [f32::NAN; 3];
     let lift = |i: usize| -> [f32; 3] {
@@ -29,8 +42,12 @@ pub fn scan_from_depth(
             z,
         ]
     };
-    let vertices: Vec<[f32; 3]> = (0..w * h).into_par_iter().map(lift).collect();
-    let normals: Vec<[f32; 3]> = (0..w * h)
+    (0..w * h)
+        .into_par_iter()
+        .map(lift)
+        .collect_into_vec(vertices);
+    let vertices = &*vertices;
+    (0..w * h)
         .into_par_iter()
         .map(|i| {
             let (x, y) = (i % w, i / w);
@@ -69,8 +86,23 @@ pub fn scan_from_depth(
             };
             n.map(|c| c * s)
         })
-        .collect();
-    (vertices, normals)
+        .collect_into_vec(normals);
+}
+
+/// Area-weighted unit vertex normals of a triangle mesh, following the winding (NaN for a vertex
+/// without a triangle of non-zero area).
+pub fn mesh_normals(v: &[Vector3<f64>], triangles: &[[u32; 3]]) -> Vec<Vector3<f64>> {
+    let mut n = vec![Vector3::zeros(); v.len()];
+    for tri in triangles {
+        let (a, b, c) = (v[tri[0] as usize], v[tri[1] as usize], v[tri[2] as usize]);
+        let f = (b - a).cross(&(c - a));
+        for &i in tri {
+            n[i as usize] += f;
+        }
+    }
+    n.iter()
+        .map(|x| x.try_normalize(1e-12).unwrap_or(Vector3::repeat(f64::NAN)))
+        .collect()
 }
 
 /// Indices of the model points visible in the scan: the warped point projects inside the image

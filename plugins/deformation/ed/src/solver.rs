@@ -13,9 +13,7 @@
 use crate::graph::{apply_node, Binding, EdGraph};
 use crate::problem::{Method, Problem, SolverParams};
 use crate::system::{BlockSystem, PatternKey};
-use misslam_framework::nalgebra::{
-    Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3,
-};
+use misslam_framework::nalgebra::{Isometry3, Matrix3, Translation3, UnitQuaternion, Vector3};
 use rayon::prelude::*;
 use std::time::Instant;
 
@@ -97,6 +95,7 @@ pub struct Solver {
     assoc: Vec<Assoc>,
     dx: Vec<f64>,
     saved: Vec<[f64; 12]>,
+    normal_matrices: Vec<Matrix3<f64>>,
 }
 
 /// The pose retraction the solver uses: world_from_camera * exp(xi), xi = (rho, omega).
@@ -163,14 +162,12 @@ impl Solver {
         let model = &problem.model;
         let cam_from_world = pose.inverse();
         let rot_cw = cam_from_world.rotation.to_rotation_matrix();
-        let nm = graph.normal_matrices();
+        graph.normal_matrices_into(&mut self.normal_matrices);
+        let nm = &self.normal_matrices;
         let cos_max = params.max_normal_angle_deg.to_radians().cos();
         let max_d2 = params.max_distance_mm * params.max_distance_mm;
         let k = scan.intrinsics;
         let (w, h) = (k.width as usize, k.height as usize);
-        if scan.vertices.len() != w * h || scan.normals.len() != w * h {
-            return;
-        }
         self.assoc = (0..model.points.len())
             .into_par_iter()
             .filter_map(|i| {
@@ -197,7 +194,7 @@ impl Solver {
                     return None;
                 }
                 if let Some(mn) = model.normals.get(i) {
-                    let nc = rot_cw * graph.warp_normal(mn, b, &nm);
+                    let nc = rot_cw * graph.warp_normal(mn, b, nm);
                     if nc.dot(&n) < cos_max {
                         return None;
                     }
@@ -571,7 +568,7 @@ impl Solver {
         params: &SolverParams,
     ) -> Result<DenseLinearization, String> {
         let key = self.pattern(graph, problem, set);
-        self.system.prepare(graph.len(), key)?;
+        self.system.prepare(graph.len(), &key)?;
         if set.data {
             self.associate(graph, problem, pose, params);
         }
@@ -625,9 +622,21 @@ impl Solver {
                 problem.model.bindings.len()
             ));
         }
+        if let Some(scan) = &problem.scan {
+            let n = (scan.intrinsics.width * scan.intrinsics.height) as usize;
+            if scan.vertices.len() != n || scan.normals.len() != n {
+                return Err(format!(
+                    "the scan has {} vertices and {} normals for {}x{} pixels",
+                    scan.vertices.len(),
+                    scan.normals.len(),
+                    scan.intrinsics.width,
+                    scan.intrinsics.height
+                ));
+            }
+        }
         let builds0 = self.system.symbolic_builds;
         let key = self.pattern(graph, problem, set);
-        self.system.prepare(graph.len(), key.clone())?;
+        self.system.prepare(graph.len(), &key)?;
         let ta = Instant::now();
         if set.data {
             self.associate(graph, problem, pose, params);
@@ -641,7 +650,7 @@ impl Solver {
         };
         for _ in 0..params.max_iterations {
             info.iterations += 1;
-            self.system.prepare(graph.len(), key.clone())?;
+            self.system.prepare(graph.len(), &key)?;
             let tb = Instant::now();
             self.assemble(graph, problem, pose, set, params);
             info.ms_assemble += tb.elapsed().as_secs_f64() * 1e3;
@@ -728,24 +737,4 @@ pub fn reg_residual(graph: &EdGraph, j: u32, k: u32) -> Vector3<f64> {
     let (gj, gk) = (g[j as usize], g[k as usize]);
     let pk = &graph.warp[k as usize];
     apply_node(&graph.warp[j as usize], &gj, &gk) - gk - Vector3::new(pk[3], pk[7], pk[11])
-}
-
-/// A rigid transform as a node warp about `g`: A = R, t = R g + t - g, so the node maps v to R v + t.
-pub fn rigid_warp(rotation: &Rotation3<f64>, t: &Vector3<f64>, g: &Vector3<f64>) -> [f64; 12] {
-    let m = rotation.matrix();
-    let tj = rotation * g + t - g;
-    [
-        m[(0, 0)],
-        m[(0, 1)],
-        m[(0, 2)],
-        tj.x,
-        m[(1, 0)],
-        m[(1, 1)],
-        m[(1, 2)],
-        tj.y,
-        m[(2, 0)],
-        m[(2, 1)],
-        m[(2, 2)],
-        tj.z,
-    ]
 }

@@ -89,9 +89,9 @@ impl BlockSystem {
     }
 
     /// Sets the pattern (reusing everything when it equals the previous one) and zeroes the system.
-    pub fn prepare(&mut self, n_nodes: usize, key: PatternKey) -> Result<(), String> {
-        if key != self.key || self.symbolic.is_none() || self.slot.len() != n_nodes {
-            self.build_pattern(n_nodes, key)?;
+    pub fn prepare(&mut self, n_nodes: usize, key: &PatternKey) -> Result<(), String> {
+        if *key != self.key || self.symbolic.is_none() || self.slot.len() != n_nodes {
+            self.build_pattern(n_nodes, key.clone())?;
         }
         self.blocks.iter_mut().for_each(|b| b.fill(0.0));
         self.pose_cross.iter_mut().for_each(|b| b.fill(0.0));

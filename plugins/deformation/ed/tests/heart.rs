@@ -84,7 +84,7 @@ fn run(decoupled: bool, corr_every: usize) -> Option<Outcome> {
     rasterize(&view, &verts, &mesh.triangles, &mut cam, &mut raster);
     let maps = scan_maps(&view, &raster, &cam, &mesh.triangles);
     // Outward normals from the winding; flip them all if most visible ones face away.
-    let mut normals = common::vertex_normals(&rest, &mesh.triangles);
+    let mut normals = misslam_deformation_ed::observe::mesh_normals(&rest, &mesh.triangles);
     let graph0 = EdGraph::from_points(
         &rest,
         GraphParams {

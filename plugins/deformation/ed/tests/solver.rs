@@ -5,7 +5,8 @@
 mod common;
 
 use common::*;
-use misslam_deformation_ed::solver::{pose_update, rigid_warp};
+use misslam_deformation_ed::graph::rigid_warp;
+use misslam_deformation_ed::solver::pose_update;
 use misslam_deformation_ed::*;
 use misslam_framework::nalgebra::{Isometry3, Rotation3, Translation3, UnitQuaternion, Vector3};
 
@@ -28,31 +29,22 @@ struct Scene {
 }
 
 fn small_scene() -> Scene {
-    let (points, tris) = sheet(21, 15, 1.0, 60.0);
-    let normals = vertex_normals(&points, &tris);
-    let graph = EdGraph::from_points(
-        &points,
-        GraphParams {
-            spacing: 6.0,
-            ..Default::default()
-        },
-    )
-    .unwrap();
-    let bindings = graph.bind_all(&points);
+    let Sheet {
+        points,
+        tris,
+        normals,
+        graph,
+        bindings,
+    } = Sheet::new(21, 15, 6.0);
     let moved: Vec<Vector3<f64>> = points
         .iter()
         .map(|p| p + Vector3::new(0.3, -0.2, 0.8 + 0.01 * p.x))
         .collect();
     let maps = render(&moved, &tris, &Isometry3::identity());
     let field = DistanceField::from_scan(&maps.0, &maps.1, 0.5, 4.0, 10_000_000).unwrap();
-    let corr = (0..points.len())
-        .step_by(37)
-        .map(|i| Correspondence {
-            point: points[i],
-            binding: bindings[i],
-            target: moved[i] + Vector3::new(0.1, 0.0, -0.1),
-        })
-        .collect();
+    let corr = correspondences(&points, &bindings, (0..points.len()).step_by(37), |i| {
+        moved[i] + Vector3::new(0.1, 0.0, -0.1)
+    });
     Scene {
         points,
         normals,
@@ -167,31 +159,23 @@ fn gauss_newton_hessian_matches_finite_differences_at_a_zero_residual() {
     // State: every node carries the same rigid motion, the scan is that motion of the sheet, the
     // correspondences are exact and the pose equals the prior: every residual is zero, so the cost's
     // Hessian is exactly 2 J^T W J.
-    let (points, tris) = sheet(21, 15, 1.0, 60.0);
-    let normals = vertex_normals(&points, &tris);
-    let mut graph = EdGraph::from_points(
-        &points,
-        GraphParams {
-            spacing: 7.0,
-            ..Default::default()
-        },
-    )
-    .unwrap();
-    let bindings = graph.bind_all(&points);
+    let Sheet {
+        points,
+        tris,
+        normals,
+        mut graph,
+        bindings,
+    } = Sheet::new(21, 15, 7.0);
     let (r, t) = rigid(0.02, -0.03, 0.05, [0.5, -0.3, 1.0]);
     for j in 0..graph.len() {
         graph.warp[j] = rigid_warp(&r, &t, &graph.nodes()[j]);
     }
     let moved: Vec<Vector3<f64>> = points.iter().map(|p| r * p + t).collect();
     let maps = render(&moved, &tris, &Isometry3::identity());
-    let corr: Vec<Correspondence> = (0..points.len())
-        .step_by(29)
-        .map(|i| Correspondence {
-            point: points[i],
-            binding: bindings[i],
-            target: moved[i],
-        })
-        .collect();
+    let corr: Vec<Correspondence> =
+        correspondences(&points, &bindings, (0..points.len()).step_by(29), |i| {
+            moved[i]
+        });
     let pose = Isometry3::identity();
     let problem = Problem {
         model: ModelPoints {
@@ -273,27 +257,21 @@ fn recover(
     decoupled: bool,
     corr_step: usize,
 ) -> ((f64, f64), Info, usize) {
-    let (points, tris) = sheet(61, 41, 1.0, 60.0);
-    let normals = vertex_normals(&points, &tris);
-    let mut graph = EdGraph::from_points(
-        &points,
-        GraphParams {
-            spacing: 6.0,
-            ..Default::default()
-        },
-    )
-    .unwrap();
-    let bindings = graph.bind_all(&points);
+    let Sheet {
+        points,
+        tris,
+        normals,
+        mut graph,
+        bindings,
+    } = Sheet::new(61, 41, 6.0);
     let moved: Vec<Vector3<f64>> = points.iter().map(&truth).collect();
     let maps = render(&moved, &tris, &Isometry3::identity());
-    let corr: Vec<Correspondence> = (0..points.len())
-        .step_by(corr_step)
-        .map(|i| Correspondence {
-            point: points[i],
-            binding: bindings[i],
-            target: moved[i],
-        })
-        .collect();
+    let corr: Vec<Correspondence> = correspondences(
+        &points,
+        &bindings,
+        (0..points.len()).step_by(corr_step),
+        |i| moved[i],
+    );
     let problem = Problem {
         model: ModelPoints {
             points: &points,
@@ -456,33 +434,26 @@ fn the_symbolic_factorisation_is_reused_while_the_pattern_is_unchanged() {
 #[test]
 fn decoupled_solves_only_the_seen_nodes_first_and_the_unseen_follow_rigidly() {
     // The whole sheet moves rigidly; only its left part (x < -5 mm) is in the data terms.
-    let (points, tris) = sheet(61, 41, 1.0, 60.0);
-    let normals = vertex_normals(&points, &tris);
+    let Sheet {
+        points,
+        tris,
+        normals,
+        graph: base,
+        bindings: all_bindings,
+    } = Sheet::new(61, 41, 6.0);
     let (r, t) = rigid(0.02, 0.0, 0.03, [1.0, 0.5, 0.8]);
     let moved: Vec<Vector3<f64>> = points.iter().map(|p| r * p + t).collect();
     let maps = render(&moved, &tris, &Isometry3::identity());
     let seen: Vec<usize> = (0..points.len()).filter(|&i| points[i].x < -5.0).collect();
-    let base = EdGraph::from_points(
-        &points,
-        GraphParams {
-            spacing: 6.0,
-            ..Default::default()
-        },
-    )
-    .unwrap();
-    let all_bindings = base.bind_all(&points);
     let sp: Vec<Vector3<f64>> = seen.iter().map(|&i| points[i]).collect();
     let sn: Vec<Vector3<f64>> = seen.iter().map(|&i| normals[i]).collect();
     let sb: Vec<Binding> = seen.iter().map(|&i| all_bindings[i]).collect();
-    let corr: Vec<Correspondence> = seen
-        .iter()
-        .step_by(15)
-        .map(|&i| Correspondence {
-            point: points[i],
-            binding: all_bindings[i],
-            target: moved[i],
-        })
-        .collect();
+    let corr: Vec<Correspondence> = correspondences(
+        &points,
+        &all_bindings,
+        seen.iter().copied().step_by(15),
+        |i| moved[i],
+    );
     let problem = Problem {
         model: ModelPoints {
             points: &sp,
@@ -586,30 +557,22 @@ fn decoupled_solves_only_the_seen_nodes_first_and_the_unseen_follow_rigidly() {
 fn the_camera_pose_alone_is_recovered_by_the_pose_unknowns() {
     // A static sheet seen from a camera that moved; the prior (tracker) is off by 1 degree and 1 mm
     // and weakly weighted, no node is solved: the data terms must bring the pose back.
-    let (points, tris) = sheet(61, 41, 1.0, 60.0);
-    let normals = vertex_normals(&points, &tris);
-    let graph0 = EdGraph::from_points(
-        &points,
-        GraphParams {
-            spacing: 6.0,
-            ..Default::default()
-        },
-    )
-    .unwrap();
-    let bindings = graph0.bind_all(&points);
+    let Sheet {
+        points,
+        tris,
+        normals,
+        graph: graph0,
+        bindings,
+    } = Sheet::new(61, 41, 6.0);
     let truth = Isometry3::from_parts(
         Translation3::new(1.0, -0.5, 2.0),
         UnitQuaternion::from_euler_angles(0.02, -0.01, 0.03),
     );
     let maps = render(&points, &tris, &truth);
-    let corr: Vec<Correspondence> = (0..points.len())
-        .step_by(40)
-        .map(|i| Correspondence {
-            point: points[i],
-            binding: bindings[i],
-            target: truth.inverse_transform_point(&points[i].into()).coords,
-        })
-        .collect();
+    let corr: Vec<Correspondence> =
+        correspondences(&points, &bindings, (0..points.len()).step_by(40), |i| {
+            truth.inverse_transform_point(&points[i].into()).coords
+        });
     let prior = truth
         * Isometry3::from_parts(
             Translation3::new(0.6, 0.5, -0.5),
@@ -727,4 +690,20 @@ fn bad_input_is_an_error_not_a_panic() {
         .unwrap();
     assert_eq!(info.data_terms, 0);
     assert!(graph.warp.iter().flatten().all(|x| x.is_finite()));
+    // A scan whose maps do not match its size is an error, not a silent loss of the data term.
+    let short = (nan.0[..10].to_vec(), nan.1[..10].to_vec());
+    let problem = Problem {
+        scan: Some(scan(&short)),
+        ..problem
+    };
+    let e = Solver::default()
+        .solve(
+            &mut graph,
+            &mut pose,
+            &problem,
+            &set,
+            &SolverParams::default(),
+        )
+        .unwrap_err();
+    assert!(e.contains("10 vertices") && e.contains("160x120"), "{e}");
 }

@@ -46,24 +46,10 @@ pub fn sheet(nx: usize, ny: usize, step: f64, z0: f64) -> (Vec<Vector3<f64>>, Ve
 
 /// Unit normals of a mesh (area-weighted), turned towards the origin (the camera).
 pub fn vertex_normals(v: &[Vector3<f64>], t: &[[u32; 3]]) -> Vec<Vector3<f64>> {
-    let mut n = vec![Vector3::zeros(); v.len()];
-    for tri in t {
-        let (a, b, c) = (v[tri[0] as usize], v[tri[1] as usize], v[tri[2] as usize]);
-        let f = (b - a).cross(&(c - a));
-        for &i in tri {
-            n[i as usize] += f;
-        }
-    }
-    n.iter()
+    misslam_deformation_ed::observe::mesh_normals(v, t)
+        .into_iter()
         .zip(v)
-        .map(|(x, p)| {
-            let u = x.normalize();
-            if u.dot(p) > 0.0 {
-                -u
-            } else {
-                u
-            }
-        })
+        .map(|(u, p)| if u.dot(p) > 0.0 { -u } else { u })
         .collect()
 }
 
@@ -120,4 +106,50 @@ impl Lcg {
             .wrapping_add(1442695040888963407);
         ((self.0 >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
     }
+}
+
+/// A sheet with its normals, a deformation graph on it and every point's binding.
+pub struct Sheet {
+    pub points: Vec<Vector3<f64>>,
+    pub tris: Vec<[u32; 3]>,
+    pub normals: Vec<Vector3<f64>>,
+    pub graph: misslam_deformation_ed::EdGraph,
+    pub bindings: Vec<misslam_deformation_ed::Binding>,
+}
+
+impl Sheet {
+    /// An (nx x ny) sheet at 1 mm steps, 60 mm from the camera, nodes `spacing` mm apart.
+    pub fn new(nx: usize, ny: usize, spacing: f64) -> Self {
+        let (points, tris) = sheet(nx, ny, 1.0, 60.0);
+        let normals = vertex_normals(&points, &tris);
+        let params = misslam_deformation_ed::GraphParams {
+            spacing,
+            ..Default::default()
+        };
+        let graph = misslam_deformation_ed::EdGraph::from_points(&points, params).expect("graph");
+        let bindings = graph.bind_all(&points);
+        Sheet {
+            points,
+            tris,
+            normals,
+            graph,
+            bindings,
+        }
+    }
+}
+
+/// Correspondences from the points at `indices` to `target(i)` (camera frame).
+pub fn correspondences(
+    points: &[Vector3<f64>],
+    bindings: &[misslam_deformation_ed::Binding],
+    indices: impl Iterator<Item = usize>,
+    target: impl Fn(usize) -> Vector3<f64>,
+) -> Vec<misslam_deformation_ed::Correspondence> {
+    indices
+        .map(|i| misslam_deformation_ed::Correspondence {
+            point: points[i],
+            binding: bindings[i],
+            target: target(i),
+        })
+        .collect()
 }
