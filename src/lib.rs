@@ -24,6 +24,8 @@ pub const BUILTIN: &[RegisterFn] = &[
     misslam_eval_recon::register,
     misslam_eval_tracking::register,
     misslam_deformation_ed::node::register,
+    misslam_features_orb::register,
+    misslam_tracking_stereo::register,
 ];
 
 /// Every built-in plugin; an id clash is an error naming both.
@@ -62,10 +64,12 @@ mod tests {
                 "eval.depth",
                 "eval.recon",
                 "eval.tracking",
+                "features.orb",
                 "image.gray",
                 "sink.files",
                 "source.phantom",
                 "source.stereo_folder",
+                "tracking.stereo",
             ]
         );
         for p in r.iter() {

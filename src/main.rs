@@ -155,6 +155,29 @@ enum BenchCommand {
         #[arg(long)]
         out: Option<PathBuf>,
     },
+    /// ORB on an image (single thread): detect-and-describe time, Hamming kNN time of the
+    /// image's descriptors against a second image's, and the matches as JSON for scoring
+    /// (benches/features_vs_opencv.py compares with OpenCV in the same run).
+    Features {
+        /// The image (PNG, PGM; converted to gray).
+        #[arg(long)]
+        image: PathBuf,
+        /// A second image to match against (e.g. the first warped by a known homography).
+        #[arg(long)]
+        image2: Option<PathBuf>,
+        /// Keypoints wanted.
+        #[arg(long, default_value_t = 1000)]
+        n_features: usize,
+        /// quadtree, grid or none (none keeps the strongest corners, as OpenCV's ORB).
+        #[arg(long, default_value = "quadtree")]
+        distribution: String,
+        /// Timed repetitions (the median is reported).
+        #[arg(long, default_value_t = 20)]
+        repeat: usize,
+        /// Write timings, keypoints and matches as JSON here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// The scheduler's own cost per node per frame (budget: 50 us), on trivial nodes.
     RuntimeOverhead {
         /// Pass-through nodes per graph.
@@ -273,6 +296,44 @@ fn run(command: Command) -> anyhow::Result<()> {
             }
             if let Some(path) = out {
                 std::fs::write(&path, serde_json::to_string_pretty(&rows)?)
+                    .with_context(|| format!("writing {}", path.display()))?;
+            }
+            Ok(())
+        }
+        Command::Bench {
+            which:
+                BenchCommand::Features {
+                    image,
+                    image2,
+                    n_features,
+                    distribution,
+                    repeat,
+                    out,
+                },
+        } => {
+            let r = misslam::bench::features(
+                &image,
+                image2.as_deref(),
+                n_features,
+                &distribution,
+                repeat,
+            )
+            .map_err(anyhow::Error::msg)?;
+            println!(
+                "ORB {}x{}: {} keypoints, detect+describe {:.2} ms (median of {repeat}, 1 thread)",
+                r.width, r.height, r.keypoints, r.orb_ms
+            );
+            if let Some(ms) = r.knn_ms {
+                println!(
+                    "Hamming 2-NN {} x {}: {:.2} ms; {} matches (ratio 0.8, cross-check)",
+                    r.keypoints,
+                    r.keypoints2,
+                    ms,
+                    r.matches.len()
+                );
+            }
+            if let Some(path) = out {
+                std::fs::write(&path, serde_json::to_string(&r)?)
                     .with_context(|| format!("writing {}", path.display()))?;
             }
             Ok(())

@@ -109,6 +109,8 @@ fn all_payloads() -> Vec<(&'static str, Payload)> {
                 }],
                 query_xy: vec![[1.0, 1.0]],
                 train_xy: vec![[2.0, 1.0]],
+                query_points: vec![[0.0, 0.0, 50.0]],
+                train_points: vec![[1.0, 0.0, 50.0]],
             })),
         ),
         ("pose", Payload::Pose(Arc::new(pose))),

@@ -5,6 +5,7 @@
 #![deny(missing_docs)]
 
 pub mod dynamic;
+pub mod geometry;
 pub mod gpu;
 pub mod graph;
 pub mod metrics;

@@ -342,6 +342,11 @@ pub struct Matches {
     pub query_xy: Vec<[f32; 2]>,
     /// Train keypoint position per pair, pixels.
     pub train_xy: Vec<[f32; 2]>,
+    /// 3D position of the query end per pair (empty when the matches are 2D only), mm; its frame
+    /// is documented by the node that produces the matches.
+    pub query_points: Vec<[f32; 3]>,
+    /// 3D position of the train end per pair (empty when 2D only), mm.
+    pub train_points: Vec<[f32; 3]>,
 }
 
 /// State of a tracker on one frame.

@@ -220,6 +220,14 @@ impl Recorder {
                     .collect();
                 rec.log(path, &rerun::LineStrips2D::new(strips))
                     .map_err(err)?;
+                if !m.train_points.is_empty() {
+                    // The 3D ends of a tracker's correspondences (its train side is the world).
+                    rec.log(
+                        format!("{path}/train_points"),
+                        &rerun::Points3D::new(m.train_points.clone()).with_radii([0.3f32]),
+                    )
+                    .map_err(err)?;
+                }
             }
             Payload::Pose(p) => {
                 let iso = p.world_from_camera;

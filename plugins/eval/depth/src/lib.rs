@@ -200,7 +200,6 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use misslam_framework::metrics::FrameMeans;
     use misslam_framework::{FloatMap, StereoCalib};
 
     fn calib() -> StereoCalib {

@@ -12,9 +12,7 @@
 //! (`tracking.point_err_mm`, for tracked surface points, comes from the tracker's correspondences.)
 #![deny(missing_docs)]
 
-use misslam_framework::nalgebra::{
-    Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3,
-};
+use misslam_framework::nalgebra::{Isometry3, Vector3};
 use misslam_framework::{
     BuildContext, Flow, FrameInfo, Inputs, Metrics, Node, NodeContext, NodeResult, Outputs,
     PortSpec, PortType, Pose, Registry, TrackingState, TypedPlugin,
@@ -66,36 +64,7 @@ pub struct TrackingScores {
     pub lost_pct: f64,
 }
 
-/// The rigid motion `m` minimising sum |m(src_i) - dst_i|^2 (Kabsch; reflection-safe).
-pub fn align_rigid(src: &[Vector3<f64>], dst: &[Vector3<f64>]) -> Isometry3<f64> {
-    let n = src.len().min(dst.len());
-    if n == 0 {
-        return Isometry3::identity();
-    }
-    let cs = src[..n].iter().sum::<Vector3<f64>>() / n as f64;
-    let cd = dst[..n].iter().sum::<Vector3<f64>>() / n as f64;
-    if n < 3 {
-        return Isometry3::from_parts(Translation3::from(cd - cs), UnitQuaternion::identity());
-    }
-    let mut h = Matrix3::zeros();
-    for (s, d) in src[..n].iter().zip(&dst[..n]) {
-        h += (s - cs) * (d - cd).transpose();
-    }
-    let svd = h.svd(true, true);
-    let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
-        return Isometry3::from_parts(Translation3::from(cd - cs), UnitQuaternion::identity());
-    };
-    let mut d = Matrix3::identity();
-    if (vt.transpose() * u.transpose()).determinant() < 0.0 {
-        d[(2, 2)] = -1.0;
-    }
-    let r = Rotation3::from_matrix_unchecked(vt.transpose() * d * u.transpose());
-    let t = cd - r * cs;
-    Isometry3::from_parts(
-        Translation3::from(t),
-        UnitQuaternion::from_rotation_matrix(&r),
-    )
-}
+pub use misslam_framework::geometry::align_rigid;
 
 /// Scores an estimated trajectory against GT; `None` marks a frame without a usable estimate.
 pub fn score(
@@ -257,6 +226,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use misslam_framework::nalgebra::{Translation3, UnitQuaternion};
 
     fn gt_trajectory(n: usize) -> Vec<Isometry3<f64>> {
         (0..n)

@@ -491,7 +491,7 @@ fn a_trajectory_for_another_mesh_is_refused() {
     .unwrap();
     // A (1, 2, 3) f4 array: two vertices, the mesh has three.
     let mut h = "{'descr': '<f4', 'fortran_order': False, 'shape': (1, 2, 3), }".to_string();
-    while (10 + h.len() + 1) % 64 != 0 {
+    while !(10 + h.len() + 1).is_multiple_of(64) {
         h.push(' ');
     }
     h.push('\n');

@@ -1,0 +1,652 @@
+//! ORB (Rublee, Rabaud, Konolige and Bradski, ICCV 2011): FAST-9 on a scale pyramid, Harris
+//! ranking, an even spread over the image, intensity-centroid orientation and steered BRIEF.
+
+use misslam_framework::Keypoint;
+
+use crate::fast::{self, Corner, FastScratch};
+use crate::pyramid::{gaussian7, resize_bilinear, Level};
+
+/// How the kept corners are spread over each level.
+#[derive(
+    Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, schemars::JsonSchema,
+)]
+#[serde(rename_all = "snake_case")]
+pub enum Distribution {
+    /// ORB-SLAM's quadtree: split the cell with the most corners until there are as many cells
+    /// as wanted corners, keep the best (Harris) corner of each.
+    Quadtree,
+    /// A regular grid with about as many cells as wanted corners, the best corner of each.
+    Grid,
+    /// No spreading: the best corners by Harris response.
+    None,
+}
+
+/// Parameters of the extractor (`features.orb`).
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct OrbParams {
+    /// Keypoints wanted over all levels.
+    pub n_features: usize,
+    /// Scale between pyramid levels.
+    pub scale_factor: f32,
+    /// Pyramid levels.
+    pub levels: usize,
+    /// FAST threshold (intensity difference).
+    pub fast_threshold: u8,
+    /// FAST threshold used again in any `cell_px` cell where `fast_threshold` found nothing
+    /// (ORB-SLAM: 20 then 7), so weakly textured tissue still gets corners; 0 disables the retry.
+    pub min_fast_threshold: u8,
+    /// Cell of the low-threshold retry, pixels of each level.
+    pub cell_px: usize,
+    /// Distance from the level's border within which no keypoint is kept, pixels (at least 16:
+    /// the orientation patch has radius 15).
+    pub edge_threshold: usize,
+    /// How corners are spread.
+    pub distribution: Distribution,
+    /// Harris `k` in `det - k trace^2`.
+    pub harris_k: f32,
+    /// Compute orientations (false gives upright descriptors, angle NaN).
+    pub oriented: bool,
+}
+
+impl Default for OrbParams {
+    fn default() -> Self {
+        OrbParams {
+            n_features: 1000,
+            scale_factor: 1.2,
+            levels: 8,
+            fast_threshold: 20,
+            min_fast_threshold: 7,
+            cell_px: 30,
+            edge_threshold: 19,
+            distribution: Distribution::Quadtree,
+            harris_k: 0.04,
+            oriented: true,
+        }
+    }
+}
+
+impl OrbParams {
+    /// Checks the ranges; the message names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        if self.n_features == 0 || self.n_features > 100_000 {
+            return Err(format!(
+                "`n_features` must lie in 1..=100000, got {}",
+                self.n_features
+            ));
+        }
+        if !(self.scale_factor > 1.0 && self.scale_factor <= 2.0) {
+            return Err(format!(
+                "`scale_factor` must lie in (1, 2], got {}",
+                self.scale_factor
+            ));
+        }
+        if self.levels == 0 || self.levels > 16 {
+            return Err(format!("`levels` must lie in 1..=16, got {}", self.levels));
+        }
+        if self.fast_threshold == 0 {
+            return Err("`fast_threshold` must be positive".into());
+        }
+        if self.min_fast_threshold > self.fast_threshold {
+            return Err(format!(
+                "`min_fast_threshold` ({}) must not exceed `fast_threshold` ({})",
+                self.min_fast_threshold, self.fast_threshold
+            ));
+        }
+        if self.cell_px < 8 {
+            return Err(format!("`cell_px` must be >= 8, got {}", self.cell_px));
+        }
+        if !(16..=64).contains(&self.edge_threshold) {
+            return Err(format!(
+                "`edge_threshold` must lie in 16..=64, got {}",
+                self.edge_threshold
+            ));
+        }
+        if !self.harris_k.is_finite() || self.harris_k < 0.0 {
+            return Err(format!("`harris_k` must be >= 0, got {}", self.harris_k));
+        }
+        Ok(())
+    }
+
+    /// Keypoints wanted on each level: a geometric series in the area ratio (ORB-SLAM).
+    pub fn per_level(&self) -> Vec<usize> {
+        let f = 1.0 / self.scale_factor as f64;
+        let n = self.n_features as f64;
+        let mut out = Vec::with_capacity(self.levels);
+        let mut left = self.n_features;
+        let first = n * (1.0 - f) / (1.0 - f.powi(self.levels as i32));
+        for l in 0..self.levels {
+            let want = if l + 1 == self.levels {
+                left
+            } else {
+                ((first * f.powi(l as i32)).round() as usize).min(left)
+            };
+            out.push(want);
+            left -= want;
+        }
+        out
+    }
+}
+
+/// Corners per wanted keypoint that get a Harris response (the strongest by FAST score).
+pub const PREFILTER: usize = 4;
+
+/// Radius of the orientation patch.
+pub const HALF_PATCH: i32 = 15;
+/// Test points of the binary descriptor lie within this radius (so any rotation stays inside
+/// the orientation patch, and inside the border of `edge_threshold` >= 16 with the blur).
+pub const PATTERN_RADIUS: f32 = 15.0;
+
+/// The 256 point pairs of the binary tests: BRIEF's isotropic Gaussian pattern (G II, sigma =
+/// 31 / 5) from a fixed seed, clipped to [`PATTERN_RADIUS`]. Deterministic across runs and
+/// platforms, so descriptors are comparable between runs.
+pub fn pattern() -> &'static [[f32; 4]; 256] {
+    static PATTERN: std::sync::OnceLock<[[f32; 4]; 256]> = std::sync::OnceLock::new();
+    PATTERN.get_or_init(|| {
+        let mut state = 0x6d69_7373_6c61_6d00u64; // "misslam"
+        let mut uniform = move || {
+            state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+            let mut z = state;
+            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let sigma = 31.0 / 5.0;
+        let mut point = move || loop {
+            // Box-Muller.
+            let (u1, u2) = (uniform().max(1e-300), uniform());
+            let r = (-2.0 * u1.ln()).sqrt() * sigma;
+            let a = std::f64::consts::TAU * u2;
+            let (x, y) = ((r * a.cos()).round(), (r * a.sin()).round());
+            if x * x + y * y <= (PATTERN_RADIUS * PATTERN_RADIUS) as f64 {
+                return [x as f32, y as f32];
+            }
+        };
+        let mut out = [[0f32; 4]; 256];
+        for pair in out.iter_mut() {
+            loop {
+                let (a, b) = (point(), point());
+                if a != b {
+                    *pair = [a[0], a[1], b[0], b[1]];
+                    break;
+                }
+            }
+        }
+        out
+    })
+}
+
+/// Reusable state of the extractor: pyramid and buffers, so a frame allocates almost nothing.
+#[derive(Default)]
+pub struct OrbScratch {
+    levels: Vec<Level>,
+    fast: FastScratch,
+    corners: Vec<Corner>,
+    nms_map: Vec<u8>,
+    responses: Vec<f32>,
+    order: Vec<u32>,
+    cells: Vec<u32>,
+    blur_tmp: Vec<u16>,
+    kept: Vec<(Corner, f32)>,
+}
+
+impl OrbScratch {
+    /// The pyramid of the last extraction.
+    pub fn levels(&self) -> &[Level] {
+        &self.levels
+    }
+}
+
+/// Extracts ORB keypoints (level-0 coordinates) and their descriptors from a gray image.
+pub fn extract(
+    gray: &[u8],
+    width: usize,
+    height: usize,
+    params: &OrbParams,
+    scratch: &mut OrbScratch,
+    keypoints: &mut Vec<Keypoint>,
+    descriptors: &mut Vec<[u64; 4]>,
+) -> Result<(), String> {
+    params.validate()?;
+    if gray.len() != width * height {
+        return Err(format!(
+            "a {width}x{height} image needs {} bytes, got {}",
+            width * height,
+            gray.len()
+        ));
+    }
+    keypoints.clear();
+    descriptors.clear();
+    build_pyramid(gray, width, height, params, scratch);
+    let per_level = params.per_level();
+    for (l, &want) in per_level.iter().enumerate() {
+        if want == 0 {
+            continue;
+        }
+        let (w, h) = (scratch.levels[l].width, scratch.levels[l].height);
+        let e = params.edge_threshold;
+        if w <= 2 * e + 1 || h <= 2 * e + 1 {
+            continue;
+        }
+        detect_level(l, params, scratch);
+        select(l, want, params, scratch);
+        let level = &scratch.levels[l];
+        for &(c, response) in &scratch.kept {
+            let angle = if params.oriented {
+                orientation(&level.data, w, c.x as i32, c.y as i32)
+            } else {
+                f32::NAN
+            };
+            descriptors.push(describe(&level.smooth, w, c.x as i32, c.y as i32, angle));
+            keypoints.push(Keypoint {
+                x: c.x as f32 * level.scale,
+                y: c.y as f32 * level.scale,
+                size: 31.0 * level.scale,
+                angle,
+                response,
+                octave: l as i32,
+            });
+        }
+    }
+    Ok(())
+}
+
+fn build_pyramid(gray: &[u8], width: usize, height: usize, p: &OrbParams, s: &mut OrbScratch) {
+    s.levels.resize_with(p.levels, Level::default);
+    for l in 0..p.levels {
+        let scale = p.scale_factor.powi(l as i32);
+        let (w, h) = if l == 0 {
+            (width, height)
+        } else {
+            (
+                (width as f32 / scale).round() as usize,
+                (height as f32 / scale).round() as usize,
+            )
+        };
+        if l == 0 {
+            let lv = &mut s.levels[0];
+            lv.data.clear();
+            lv.data.extend_from_slice(gray);
+        } else {
+            let (prev, rest) = s.levels.split_at_mut(l);
+            let pr = &prev[l - 1];
+            resize_bilinear(&pr.data, pr.width, pr.height, &mut rest[0].data, w, h);
+        }
+        let lv = &mut s.levels[l];
+        lv.width = w;
+        lv.height = h;
+        lv.scale = scale;
+        gaussian7(&lv.data, w, h, &mut lv.smooth, &mut s.blur_tmp);
+    }
+}
+
+/// FAST at `fast_threshold` over the level, again at `min_fast_threshold` in empty cells, then
+/// non-maximum suppression.
+fn detect_level(l: usize, p: &OrbParams, s: &mut OrbScratch) {
+    let lv = &s.levels[l];
+    let (w, h) = (lv.width, lv.height);
+    let e = p.edge_threshold;
+    // FAST itself needs 3 pixels; keypoints must stay `e` inside.
+    let region = (e, e, w - e, h - e);
+    s.corners.clear();
+    fast::detect(
+        &lv.data,
+        w,
+        h,
+        region,
+        p.fast_threshold,
+        &mut s.fast,
+        &mut s.corners,
+    );
+    if p.min_fast_threshold > 0 && p.min_fast_threshold < p.fast_threshold {
+        let cell = p.cell_px;
+        let (cols, rows) = ((w - 2 * e).div_ceil(cell), (h - 2 * e).div_ceil(cell));
+        s.cells.clear();
+        s.cells.resize(cols * rows, 0);
+        for c in &s.corners {
+            let (cx, cy) = ((c.x as usize - e) / cell, (c.y as usize - e) / cell);
+            s.cells[cy * cols + cx] += 1;
+        }
+        for cy in 0..rows {
+            for cx in 0..cols {
+                if s.cells[cy * cols + cx] != 0 {
+                    continue;
+                }
+                let x0 = e + cx * cell;
+                let y0 = e + cy * cell;
+                let rect = (x0, y0, (x0 + cell).min(w - e), (y0 + cell).min(h - e));
+                fast::detect(
+                    &lv.data,
+                    w,
+                    h,
+                    rect,
+                    p.min_fast_threshold,
+                    &mut s.fast,
+                    &mut s.corners,
+                );
+            }
+        }
+        s.corners.sort_unstable_by_key(|c| (c.y, c.x));
+    }
+    s.nms_map.clear();
+    s.nms_map.resize(w * h, 0);
+    fast::non_max_suppression(&mut s.corners, w, &mut s.nms_map);
+}
+
+/// Harris response with Sobel gradients over a 7x7 block, normalised as OpenCV's ORB does.
+fn harris(img: &[u8], w: usize, x: i32, y: i32, k: f32) -> f32 {
+    let (mut a, mut b, mut c) = (0i64, 0i64, 0i64);
+    let at = |x: i32, y: i32| img[y as usize * w + x as usize] as i32;
+    for dy in -3..=3 {
+        for dx in -3..=3 {
+            let (u, v) = (x + dx, y + dy);
+            let ix = (at(u + 1, v - 1) - at(u - 1, v - 1))
+                + 2 * (at(u + 1, v) - at(u - 1, v))
+                + (at(u + 1, v + 1) - at(u - 1, v + 1));
+            let iy = (at(u - 1, v + 1) - at(u - 1, v - 1))
+                + 2 * (at(u, v + 1) - at(u, v - 1))
+                + (at(u + 1, v + 1) - at(u + 1, v - 1));
+            a += (ix * ix) as i64;
+            b += (iy * iy) as i64;
+            c += (ix * iy) as i64;
+        }
+    }
+    // Sobel gains 4 per unit step; 7x7 block; 8-bit range.
+    let scale = 1.0 / (4.0 * 7.0 * 255.0);
+    let (a, b, c) = (
+        a as f32 * scale * scale,
+        b as f32 * scale * scale,
+        c as f32 * scale * scale,
+    );
+    a * b - c * c - k * (a + b) * (a + b)
+}
+
+/// Ranks the level's corners by Harris response and keeps `want` of them, spread as asked.
+fn select(l: usize, want: usize, p: &OrbParams, s: &mut OrbScratch) {
+    let lv = &s.levels[l];
+    let w = lv.width;
+    // Harris only for the strongest corners by FAST score (OpenCV's ORB does the same).
+    let budget = (PREFILTER * want).max(64);
+    if s.corners.len() > budget {
+        s.corners.select_nth_unstable_by(budget, |a, b| {
+            b.score.cmp(&a.score).then((a.y, a.x).cmp(&(b.y, b.x)))
+        });
+        s.corners.truncate(budget);
+    }
+    s.responses.clear();
+    s.responses.extend(
+        s.corners
+            .iter()
+            .map(|c| harris(&lv.data, w, c.x as i32, c.y as i32, p.harris_k)),
+    );
+    s.order.clear();
+    s.order.extend(0..s.corners.len() as u32);
+    let e = p.edge_threshold as f32;
+    let bounds = (e, e, (lv.width as f32 - e), (lv.height as f32 - e));
+    let chosen: Vec<u32> = match p.distribution {
+        Distribution::None => s.order.clone(),
+        Distribution::Quadtree => quadtree(&s.corners, &s.responses, &mut s.order, bounds, want),
+        Distribution::Grid => grid(&s.corners, &s.responses, bounds, want),
+    };
+    let mut chosen = chosen;
+    let r = &s.responses;
+    chosen.sort_unstable_by(|&a, &b| r[b as usize].total_cmp(&r[a as usize]).then(a.cmp(&b)));
+    chosen.truncate(want);
+    s.kept.clear();
+    s.kept.extend(
+        chosen
+            .iter()
+            .map(|&i| (s.corners[i as usize], r[i as usize])),
+    );
+}
+
+/// ORB-SLAM's quadtree: start from square-ish cells over `bounds`, split the most populated
+/// cell in four until there are at least `want` cells or none holds two corners, then keep the
+/// strongest corner of each cell. `order` is permuted in place (each cell a contiguous range).
+fn quadtree(
+    corners: &[Corner],
+    resp: &[f32],
+    order: &mut [u32],
+    (x0, y0, x1, y1): (f32, f32, f32, f32),
+    want: usize,
+) -> Vec<u32> {
+    #[derive(Clone, Copy)]
+    struct Cell {
+        x0: f32,
+        y0: f32,
+        x1: f32,
+        y1: f32,
+        start: usize,
+        end: usize,
+    }
+    let roots = (((x1 - x0) / (y1 - y0)).round() as usize).max(1);
+    let rw = (x1 - x0) / roots as f32;
+    // Partition `order[start..end]` by a key in 0..k; returns the k + 1 boundaries.
+    fn partition(order: &mut [u32], key: impl Fn(u32) -> usize, k: usize) -> Vec<usize> {
+        let mut counts = vec![0usize; k + 1];
+        for &i in order.iter() {
+            counts[key(i) + 1] += 1;
+        }
+        for j in 0..k {
+            counts[j + 1] += counts[j];
+        }
+        let mut fill = counts.clone();
+        let src = order.to_vec();
+        for i in src {
+            let b = key(i);
+            order[fill[b]] = i;
+            fill[b] += 1;
+        }
+        counts
+    }
+    let xy = |i: u32| (corners[i as usize].x as f32, corners[i as usize].y as f32);
+    let bounds = partition(
+        order,
+        |i| (((xy(i).0 - x0) / rw) as usize).min(roots - 1),
+        roots,
+    );
+    let mut cells: Vec<Cell> = (0..roots)
+        .map(|r| Cell {
+            x0: x0 + r as f32 * rw,
+            y0,
+            x1: x0 + (r + 1) as f32 * rw,
+            y1,
+            start: bounds[r],
+            end: bounds[r + 1],
+        })
+        .filter(|c| c.end > c.start)
+        .collect();
+    while cells.len() < want {
+        let Some((ci, _)) = cells
+            .iter()
+            .enumerate()
+            .filter(|(_, c)| c.end - c.start > 1 && c.x1 - c.x0 > 1.0)
+            .max_by_key(|(_, c)| c.end - c.start)
+        else {
+            break;
+        };
+        let c = cells.swap_remove(ci);
+        let (mx, my) = ((c.x0 + c.x1) * 0.5, (c.y0 + c.y1) * 0.5);
+        let quadrant = |i: u32| {
+            let (x, y) = xy(i);
+            (x >= mx) as usize + 2 * (y >= my) as usize
+        };
+        let b = partition(&mut order[c.start..c.end], quadrant, 4);
+        for q in 0..4 {
+            let (s, e) = (c.start + b[q], c.start + b[q + 1]);
+            if e > s {
+                let (qx0, qx1) = if q & 1 == 0 { (c.x0, mx) } else { (mx, c.x1) };
+                let (qy0, qy1) = if q & 2 == 0 { (c.y0, my) } else { (my, c.y1) };
+                cells.push(Cell {
+                    x0: qx0,
+                    y0: qy0,
+                    x1: qx1,
+                    y1: qy1,
+                    start: s,
+                    end: e,
+                });
+            }
+        }
+    }
+    cells
+        .iter()
+        .map(|c| {
+            *order[c.start..c.end]
+                .iter()
+                .max_by(|&&a, &&b| {
+                    resp[a as usize]
+                        .total_cmp(&resp[b as usize])
+                        .then(b.cmp(&a))
+                })
+                .unwrap_or(&order[c.start])
+        })
+        .collect()
+}
+
+/// A regular grid of about `want` square cells over `bounds`; the strongest corner of each.
+fn grid(
+    corners: &[Corner],
+    resp: &[f32],
+    (x0, y0, x1, y1): (f32, f32, f32, f32),
+    want: usize,
+) -> Vec<u32> {
+    let area = ((x1 - x0) * (y1 - y0)).max(1.0);
+    let side = (area / want.max(1) as f32).sqrt().max(1.0);
+    let cols = (((x1 - x0) / side).ceil() as usize).max(1);
+    let rows = (((y1 - y0) / side).ceil() as usize).max(1);
+    let mut best = vec![u32::MAX; cols * rows];
+    for (i, c) in corners.iter().enumerate() {
+        let cx = (((c.x as f32 - x0) / side) as usize).min(cols - 1);
+        let cy = (((c.y as f32 - y0) / side) as usize).min(rows - 1);
+        let b = &mut best[cy * cols + cx];
+        if *b == u32::MAX || resp[i] > resp[*b as usize] {
+            *b = i as u32;
+        }
+    }
+    best.into_iter().filter(|&b| b != u32::MAX).collect()
+}
+
+/// Offsets of the circular orientation patch: `UMAX[v]` is the half width of row `v`.
+fn umax() -> &'static [i32; HALF_PATCH as usize + 1] {
+    static U: std::sync::OnceLock<[i32; HALF_PATCH as usize + 1]> = std::sync::OnceLock::new();
+    U.get_or_init(|| {
+        let r = HALF_PATCH as f32;
+        std::array::from_fn(|v| ((r * r - (v * v) as f32).sqrt() + 0.5).floor() as i32)
+    })
+}
+
+/// Intensity-centroid orientation in radians (image axes: x right, y down).
+pub fn orientation(img: &[u8], w: usize, x: i32, y: i32) -> f32 {
+    let um = umax();
+    let (mut m01, mut m10) = (0i64, 0i64);
+    for v in -HALF_PATCH..=HALF_PATCH {
+        let u = um[v.unsigned_abs() as usize];
+        let row = ((y + v) as usize) * w;
+        let mut sum_row = 0i64;
+        for du in -u..=u {
+            let p = img[row + (x + du) as usize] as i64;
+            m10 += du as i64 * p;
+            sum_row += p;
+        }
+        m01 += v as i64 * sum_row;
+    }
+    (m01 as f32).atan2(m10 as f32)
+}
+
+/// The pattern as four coordinate arrays (x1, y1, x2, y2), for loops the compiler vectorises.
+fn pattern_soa() -> &'static [[f32; 256]; 4] {
+    static SOA: std::sync::OnceLock<[[f32; 256]; 4]> = std::sync::OnceLock::new();
+    SOA.get_or_init(|| {
+        let p = pattern();
+        std::array::from_fn(|k| std::array::from_fn(|i| p[i][k]))
+    })
+}
+
+/// Steered BRIEF: the 256 tests of [`pattern`] rotated by `angle` (upright when NaN), on the
+/// smoothed level; bit `i` is set when the first point of pair `i` is darker than the second.
+/// The rotated offsets are computed in one vectorised pass, the tests without branches.
+pub fn describe(smooth: &[u8], w: usize, x: i32, y: i32, angle: f32) -> [u64; 4] {
+    let (s, c) = if angle.is_finite() {
+        angle.sin_cos()
+    } else {
+        (0.0, 1.0)
+    };
+    let centre = y as isize * w as isize + x as isize;
+    let [x1, y1, x2, y2] = pattern_soa();
+    // Round to nearest by the float trick (adding 1.5 * 2^23 pushes the fraction out).
+    let round = |v: f32| (v + 12_582_912.0) - 12_582_912.0;
+    let wf = w as f32;
+    let mut o1 = [0i32; 256];
+    let mut o2 = [0i32; 256];
+    for i in 0..256 {
+        o1[i] = (round(s * x1[i] + c * y1[i]) * wf + round(c * x1[i] - s * y1[i])) as i32;
+        o2[i] = (round(s * x2[i] + c * y2[i]) * wf + round(c * x2[i] - s * y2[i])) as i32;
+    }
+    let mut d = [0u64; 4];
+    for (word, out) in d.iter_mut().enumerate() {
+        let mut bits = 0u64;
+        for b in 0..64 {
+            let i = word * 64 + b;
+            let a = smooth[(centre + o1[i] as isize) as usize];
+            let z = smooth[(centre + o2[i] as isize) as usize];
+            bits |= ((a < z) as u64) << b;
+        }
+        *out = bits;
+    }
+    d
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn per_level_counts_sum_to_the_total_and_decrease() {
+        let p = OrbParams::default();
+        let n = p.per_level();
+        assert_eq!(n.iter().sum::<usize>(), 1000);
+        assert_eq!(n.len(), 8);
+        for k in 1..7 {
+            assert!(n[k] <= n[k - 1]);
+        }
+        // 1000 (1 - 1/1.2) / (1 - 1.2^-8) = 217.
+        assert_eq!(n[0], 217);
+    }
+
+    #[test]
+    fn pattern_is_deterministic_and_inside_the_radius() {
+        let p = pattern();
+        for t in p.iter() {
+            for k in [0, 2] {
+                assert!(t[k] * t[k] + t[k + 1] * t[k + 1] <= PATTERN_RADIUS * PATTERN_RADIUS);
+            }
+            assert!(t[0] != t[2] || t[1] != t[3]);
+        }
+        // Spread like a Gaussian of sigma 6.2 clipped at 13: the RMS radius is near 8.
+        let rms = (p.iter().map(|t| t[0] * t[0] + t[1] * t[1]).sum::<f32>() / 256.0).sqrt();
+        assert!((6.0..10.0).contains(&rms), "{rms}");
+    }
+
+    #[test]
+    fn orientation_points_to_the_bright_side() {
+        let (w, h) = (41usize, 41usize);
+        for (dx, dy, want) in [
+            (1, 0, 0.0f32),
+            (0, 1, std::f32::consts::FRAC_PI_2),
+            (-1, 0, std::f32::consts::PI),
+        ] {
+            let img: Vec<u8> = (0..w * h)
+                .map(|i| {
+                    let (x, y) = ((i % w) as i32 - 20, (i / w) as i32 - 20);
+                    (128 + 4 * (dx * x + dy * y)) as u8
+                })
+                .collect();
+            let a = orientation(&img, w, 20, 20);
+            let diff = (a - want).rem_euclid(std::f32::consts::TAU);
+            assert!(
+                diff.min(std::f32::consts::TAU - diff) < 1e-3,
+                "{a} vs {want}"
+            );
+        }
+    }
+}

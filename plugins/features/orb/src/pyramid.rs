@@ -1,0 +1,141 @@
+//! The scale pyramid: level `l` is the image resized by `1 / scale^l` (bilinear, each level from
+//! the previous one), and a Gaussian-smoothed copy of each level for the binary tests.
+
+/// One 8-bit gray level.
+#[derive(Clone, Debug, Default)]
+pub struct Level {
+    /// Width, pixels.
+    pub width: usize,
+    /// Height, pixels.
+    pub height: usize,
+    /// Row-major bytes.
+    pub data: Vec<u8>,
+    /// The same, smoothed by a 7x7 Gaussian (sigma 2); valid from 3 pixels inside the border.
+    pub smooth: Vec<u8>,
+    /// Level-0 pixels per pixel of this level (`scale^l`).
+    pub scale: f32,
+}
+
+/// Resizes `src` (`sw` x `sh`) into `dst` (`dw` x `dh`) bilinearly, pixel centres aligned.
+pub fn resize_bilinear(src: &[u8], sw: usize, sh: usize, dst: &mut Vec<u8>, dw: usize, dh: usize) {
+    dst.clear();
+    dst.resize(dw * dh, 0);
+    if dw == 0 || dh == 0 || sw == 0 || sh == 0 {
+        return;
+    }
+    let (fx, fy) = (sw as f32 / dw as f32, sh as f32 / dh as f32);
+    // Per column: left source index and 8-bit weight of the right neighbour.
+    let cols: Vec<(usize, u32)> = (0..dw)
+        .map(|x| {
+            let s = ((x as f32 + 0.5) * fx - 0.5).clamp(0.0, (sw - 1) as f32);
+            let i = (s as usize).min(sw.saturating_sub(2));
+            let a = ((s - i as f32) * 256.0).round().clamp(0.0, 256.0) as u32;
+            (i, a)
+        })
+        .collect();
+    let mut tmp = vec![0u32; dw];
+    for y in 0..dh {
+        let s = ((y as f32 + 0.5) * fy - 0.5).clamp(0.0, (sh - 1) as f32);
+        let j = (s as usize).min(sh.saturating_sub(2));
+        let b = ((s - j as f32) * 256.0).round().clamp(0.0, 256.0) as u32;
+        let r0 = &src[j * sw..(j + 1) * sw];
+        let r1 = &src[((j + 1).min(sh - 1)) * sw..((j + 1).min(sh - 1) + 1) * sw];
+        for (t, &(i, a)) in tmp.iter_mut().zip(&cols) {
+            let i1 = (i + 1).min(sw - 1);
+            let top = r0[i] as u32 * (256 - a) + r0[i1] as u32 * a;
+            let bot = r1[i] as u32 * (256 - a) + r1[i1] as u32 * a;
+            *t = top * (256 - b) + bot * b;
+        }
+        for (d, &t) in dst[y * dw..(y + 1) * dw].iter_mut().zip(&tmp) {
+            *d = ((t + (1 << 15)) >> 16) as u8;
+        }
+    }
+}
+
+/// 7-tap Gaussian, sigma 2, in 8-bit fixed point (sums to 256).
+const GAUSS7: [u32; 4] = [54, 49, 34, 18];
+
+/// Smooths `src` by the separable 7x7 Gaussian into `dst` (the 3-pixel border is copied).
+pub fn gaussian7(src: &[u8], w: usize, h: usize, dst: &mut Vec<u8>, tmp: &mut Vec<u16>) {
+    dst.clear();
+    dst.extend_from_slice(src);
+    if w < 7 || h < 7 {
+        return;
+    }
+    tmp.clear();
+    tmp.resize(w * h, 0);
+    let [k0, k1, k2, k3] = GAUSS7;
+    // Horizontal: u8 -> u16 (at most 255 * 256).
+    for y in 0..h {
+        let r = &src[y * w..(y + 1) * w];
+        let n = w - 6;
+        let t = &mut tmp[y * w + 3..y * w + 3 + n];
+        let (a, b, c, d, e, f, g) = (
+            &r[0..n],
+            &r[1..n + 1],
+            &r[2..n + 2],
+            &r[3..n + 3],
+            &r[4..n + 4],
+            &r[5..n + 5],
+            &r[6..n + 6],
+        );
+        for i in 0..n {
+            let v = k0 * d[i] as u32
+                + k1 * (c[i] as u32 + e[i] as u32)
+                + k2 * (b[i] as u32 + f[i] as u32)
+                + k3 * (a[i] as u32 + g[i] as u32);
+            t[i] = v as u16;
+        }
+    }
+    // Vertical: u16 -> u8.
+    for y in 3..h - 3 {
+        let row = |k: usize| &tmp[(y + k - 3) * w + 3..(y + k - 3) * w + w - 3];
+        let (a, b, c, d, e, f, g) = (row(0), row(1), row(2), row(3), row(4), row(5), row(6));
+        let out = &mut dst[y * w + 3..y * w + w - 3];
+        for i in 0..out.len() {
+            let v = k0 * d[i] as u32
+                + k1 * (c[i] as u32 + e[i] as u32)
+                + k2 * (b[i] as u32 + f[i] as u32)
+                + k3 * (a[i] as u32 + g[i] as u32);
+            out[i] = ((v + (1 << 15)) >> 16) as u8;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn resize_keeps_constant_and_linear_images() {
+        let (sw, sh) = (60usize, 40usize);
+        let flat = vec![77u8; sw * sh];
+        let mut out = Vec::new();
+        resize_bilinear(&flat, sw, sh, &mut out, 50, 33);
+        assert!(out.iter().all(|&v| v == 77));
+        // A horizontal ramp stays a ramp: value at the resized centre = value of the source there.
+        let ramp: Vec<u8> = (0..sw * sh).map(|i| (i % sw) as u8 * 4).collect();
+        resize_bilinear(&ramp, sw, sh, &mut out, 50, 33);
+        for x in 1..49 {
+            let s = (x as f32 + 0.5) * 60.0 / 50.0 - 0.5;
+            assert!((out[10 * 50 + x] as f32 - 4.0 * s).abs() <= 1.0, "x {x}");
+        }
+    }
+
+    #[test]
+    fn gaussian_preserves_constants_and_smooths_an_impulse() {
+        let (w, h) = (20usize, 20usize);
+        let mut img = vec![100u8; w * h];
+        let (mut out, mut tmp) = (Vec::new(), Vec::new());
+        gaussian7(&img, w, h, &mut out, &mut tmp);
+        assert!(out.iter().all(|&v| v == 100));
+        img[10 * w + 10] = 255;
+        gaussian7(&img, w, h, &mut out, &mut tmp);
+        let c = out[10 * w + 10];
+        // 100 + 155 * (54/256)^2 = 106.9
+        assert!((106..=108).contains(&c), "{c}");
+        assert_eq!(out[10 * w + 11], out[10 * w + 9]);
+        assert_eq!(out[11 * w + 10], out[10 * w + 11]);
+        assert_eq!(out[10 * w + 14], 100);
+    }
+}
