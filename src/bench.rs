@@ -560,6 +560,7 @@ pub fn features(
             &MatchParams {
                 ratio: 0.8,
                 max_distance: 64.0,
+                max_distance_l2: 0.4,
                 cross_check: true,
             },
             &mut MatchScratch::default(),
@@ -573,4 +574,31 @@ pub fn features(
             .collect();
     }
     Ok(out)
+}
+
+/// SURF detect-and-describe on one image, one thread: (keypoints, median ms).
+pub fn surf(image: &Path, max_keypoints: usize, repeat: usize) -> Result<(usize, f64), String> {
+    use misslam_features_surf::surf::{extract, SurfParams, SurfScratch};
+    let p = SurfParams {
+        max_keypoints,
+        ..SurfParams::default()
+    };
+    let (w, h, gray) = gray_image(image)?;
+    let mut scratch = SurfScratch::default();
+    let (mut k, mut d) = (Vec::new(), Vec::new());
+    let mut times = Vec::new();
+    for _ in 0..repeat.max(1) {
+        let t = Instant::now();
+        extract(
+            &gray,
+            w as usize,
+            h as usize,
+            &p,
+            &mut scratch,
+            &mut k,
+            &mut d,
+        )?;
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    Ok((k.len(), median_ms(times)))
 }

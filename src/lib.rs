@@ -25,6 +25,7 @@ pub const BUILTIN: &[RegisterFn] = &[
     misslam_eval_tracking::register,
     misslam_deformation_ed::node::register,
     misslam_features_orb::register,
+    misslam_features_surf::register,
     misslam_tracking_stereo::register,
 ];
 
@@ -65,6 +66,7 @@ mod tests {
                 "eval.recon",
                 "eval.tracking",
                 "features.orb",
+                "features.surf",
                 "image.gray",
                 "sink.files",
                 "source.phantom",

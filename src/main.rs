@@ -171,6 +171,9 @@ enum BenchCommand {
         /// quadtree, grid or none (none keeps the strongest corners, as OpenCV's ORB).
         #[arg(long, default_value = "quadtree")]
         distribution: String,
+        /// orb, or surf (SURF: `--n-features` caps the keypoints; timing only, no pair).
+        #[arg(long, default_value = "orb")]
+        detector: String,
         /// Timed repetitions (the median is reported).
         #[arg(long, default_value_t = 20)]
         repeat: usize,
@@ -307,10 +310,26 @@ fn run(command: Command) -> anyhow::Result<()> {
                     image2,
                     n_features,
                     distribution,
+                    detector,
                     repeat,
                     out,
                 },
         } => {
+            if detector == "surf" {
+                let (n, ms) =
+                    misslam::bench::surf(&image, n_features, repeat).map_err(anyhow::Error::msg)?;
+                println!("SURF: {n} keypoints, detect+describe {ms:.2} ms (median of {repeat}, 1 thread)");
+                if let Some(path) = out {
+                    let v = serde_json::json!({ "keypoints": n, "surf_ms": ms });
+                    std::fs::write(&path, v.to_string())
+                        .with_context(|| format!("writing {}", path.display()))?;
+                }
+                return Ok(());
+            }
+            anyhow::ensure!(
+                detector == "orb",
+                "--detector `{detector}`: expected orb or surf"
+            );
             let r = misslam::bench::features(
                 &image,
                 image2.as_deref(),

@@ -37,3 +37,36 @@ fn tracking_on_the_beating_heart_is_bounded_by_the_tissue_motion() {
     assert!(ate.is_finite() && ate < 4.0, "ATE {ate} mm");
     assert_eq!(eval["tracking.lost_pct"], 0.0);
 }
+
+#[test]
+fn tracking_surf_graph_on_a_rigid_sweep_is_sub_half_millimetre() {
+    // One line differs from tracking_orb.toml: the feature plugin (and its parameters).
+    let out = common::tmp_dir("tracking_surf_rigid");
+    let sets = [
+        "graph.frames.count=40",
+        "src.heartbeat_mm=0",
+        "src.breathing_mm=0",
+    ]
+    .map(String::from);
+    let report = common::run_graph_file("graphs/tracking_surf.toml", &sets, &out);
+    let eval = &report.metrics.eval;
+    let ate = eval["tracking.ate_mm"];
+    eprintln!("tracking_surf, rigid sweep, 40 frames: ATE {ate:.3} mm");
+    assert!(ate < 0.5, "ATE {ate} mm");
+    assert_eq!(eval["tracking.lost_pct"], 0.0);
+}
+
+#[test]
+fn swapping_the_feature_plugin_by_set_runs() {
+    // `--set features.plugin=features.surf` on the ORB graph: the ORB-only parameters must be
+    // replaced too, so the swap names the SURF parameters explicitly.
+    let out = common::tmp_dir("tracking_swap");
+    let sets = [
+        "graph.frames.count=4",
+        "features.plugin=features.surf",
+        "features.detector={ max_keypoints = 500 }",
+    ]
+    .map(String::from);
+    let report = common::run_graph_file("graphs/tracking_orb.toml", &sets, &out);
+    assert_eq!(report.metrics.frames.processed, 4);
+}

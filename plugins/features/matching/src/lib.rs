@@ -13,7 +13,39 @@
 pub mod guided;
 pub mod stereo;
 
-use misslam_framework::{Descriptors, Match};
+use misslam_framework::{Descriptors, Keypoint, Mask, Match};
+
+/// Drops the keypoints (and their descriptors) that fall on invalid pixels of `mask` (e.g. the
+/// black border of a rectified endoscope image); a mask of another size is ignored.
+pub fn retain_in_mask<T>(
+    keypoints: &mut Vec<Keypoint>,
+    descriptors: &mut Vec<T>,
+    mask: Option<&Mask>,
+) {
+    let Some(m) = mask else { return };
+    let (w, h) = (m.width as usize, m.height as usize);
+    let keep: Vec<bool> = keypoints
+        .iter()
+        .map(|k| {
+            let (x, y) = (k.x.round(), k.y.round());
+            x >= 0.0
+                && y >= 0.0
+                && (x as usize) < w
+                && (y as usize) < h
+                && m.data[y as usize * w + x as usize] != 0
+        })
+        .collect();
+    let mut i = 0;
+    keypoints.retain(|_| {
+        i += 1;
+        keep[i - 1]
+    });
+    let mut i = 0;
+    descriptors.retain(|_| {
+        i += 1;
+        keep[i - 1]
+    });
+}
 
 /// Hamming distance of two 256-bit descriptors.
 #[inline(always)]
@@ -173,8 +205,10 @@ pub fn distance(a: &Descriptors, i: usize, b: &Descriptors, j: usize) -> f32 {
 pub struct MatchParams {
     /// Lowe's ratio test: keep a match when `d1 < ratio * d2`; 1 disables it.
     pub ratio: f32,
-    /// Largest accepted distance (Hamming bits for ORB, L2 for SURF's unit descriptors).
+    /// Largest accepted Hamming distance of binary descriptors (ORB), bits.
     pub max_distance: f32,
+    /// Largest accepted L2 distance of float descriptors (SURF's unit vectors: 0 to 2).
+    pub max_distance_l2: f32,
     /// Keep a match only when the query is also the train descriptor's nearest neighbour.
     pub cross_check: bool,
 }
@@ -184,6 +218,7 @@ impl Default for MatchParams {
         MatchParams {
             ratio: 0.8,
             max_distance: 64.0,
+            max_distance_l2: 0.4,
             cross_check: false,
         }
     }
@@ -201,7 +236,26 @@ impl MatchParams {
                 self.max_distance
             ));
         }
+        if self.max_distance_l2.is_nan() || self.max_distance_l2 <= 0.0 {
+            return Err(format!(
+                "`max_distance_l2` must be positive, got {}",
+                self.max_distance_l2
+            ));
+        }
         Ok(())
+    }
+
+    /// The distance limit for descriptors of this kind.
+    pub fn limit(&self, d: &Descriptors) -> f32 {
+        distance_limit(d, self.max_distance, self.max_distance_l2)
+    }
+}
+
+/// `binary` for binary descriptors, `l2` for float ones.
+pub fn distance_limit(d: &Descriptors, binary: f32, l2: f32) -> f32 {
+    match d {
+        Descriptors::Binary256(_) => binary,
+        Descriptors::Float64(_) => l2,
     }
 }
 
@@ -223,9 +277,10 @@ pub fn match_descriptors(
     if params.cross_check {
         knn2(train, query, &mut scratch.backward)?;
     }
+    let limit = params.limit(query);
     let mut out = Vec::new();
     for (i, k) in scratch.forward.iter().enumerate() {
-        if k.best == u32::MAX || k.d1 > params.max_distance {
+        if k.best == u32::MAX || k.d1 > limit {
             continue;
         }
         // With a tie for the nearest (d1 == d2) the match is ambiguous and the ratio test drops it.
@@ -335,6 +390,7 @@ mod tests {
         let p = MatchParams {
             ratio: 1.0,
             max_distance: 64.0,
+            max_distance_l2: 0.4,
             cross_check: false,
         };
         let m = match_descriptors(&query, &train, &p, &mut scratch).expect("same kind");
@@ -365,6 +421,7 @@ mod tests {
         let p = MatchParams {
             ratio: 1.0,
             max_distance: 0.5,
+            max_distance_l2: 0.4,
             cross_check: false,
         };
         let m = match_descriptors(&query, &train, &p, &mut scratch).expect("same kind");

@@ -4,7 +4,7 @@
 //! block matching along the row with an equiangular (V) fit through the three lowest costs. The 3D point
 //! follows from the calibration.
 
-use misslam_framework::{Descriptors, Keypoint, StereoCalib};
+use misslam_framework::{Descriptors, Keypoint, Match, Matches, StereoCalib};
 
 use crate::distance;
 
@@ -21,8 +21,10 @@ pub struct StereoParams {
     /// Half height of the row band, pixels, for a keypoint of size 31; it grows in proportion to
     /// the keypoint's size (coarser pyramid levels localise less precisely).
     pub row_tolerance_px: f32,
-    /// Largest accepted descriptor distance (Hamming bits, or L2).
+    /// Largest accepted Hamming distance of binary descriptors, bits.
     pub max_distance: f32,
+    /// Largest accepted L2 distance of float descriptors.
+    pub max_distance_l2: f32,
     /// Ratio of best to second-best distance on the band; 1 disables the test.
     pub ratio: f32,
     /// Largest difference of pyramid level between the two keypoints.
@@ -44,6 +46,7 @@ impl Default for StereoParams {
             max_disparity: 128.0,
             row_tolerance_px: 2.0,
             max_distance: 75.0,
+            max_distance_l2: 0.3,
             ratio: 0.9,
             max_octave_gap: 1,
             refine_half_window: 5,
@@ -72,6 +75,12 @@ impl StereoParams {
             return Err(format!(
                 "`max_distance` must be positive, got {}",
                 self.max_distance
+            ));
+        }
+        if self.max_distance_l2.is_nan() || self.max_distance_l2 <= 0.0 {
+            return Err(format!(
+                "`max_distance_l2` must be positive, got {}",
+                self.max_distance_l2
             ));
         }
         if !(self.ratio > 0.0 && self.ratio <= 1.0) {
@@ -176,6 +185,7 @@ pub fn stereo_match(
         }
     }
 
+    let limit = crate::distance_limit(left_desc, params.max_distance, params.max_distance_l2);
     let mut out = Vec::new();
     scratch.sads.clear();
     for (i, kl) in left.iter().enumerate() {
@@ -206,7 +216,7 @@ pub fn stereo_match(
                 d2 = d;
             }
         }
-        if arg == u32::MAX || d1 > params.max_distance {
+        if arg == u32::MAX || d1 > limit {
             continue;
         }
         if params.ratio < 1.0 && d2.is_finite() && d1 >= params.ratio * d2 {
@@ -307,6 +317,43 @@ fn refine(
     }
     let xr = (xr0 - range + best as i64) as f32 + delta;
     Some((xl as f32 - xr, c1))
+}
+
+/// Stereo matches of a rectified pair turned into what a feature node outputs: per left
+/// keypoint its camera-frame 3D point (NaN without a match), and the matches (query = left,
+/// train = right) with the left 3D points.
+#[allow(clippy::too_many_arguments)]
+pub fn stereo_points(
+    left: &[Keypoint],
+    left_desc: &Descriptors,
+    right: &[Keypoint],
+    right_desc: &Descriptors,
+    left_img: GrayView,
+    right_img: GrayView,
+    calib: &StereoCalib,
+    params: &StereoParams,
+    scratch: &mut StereoScratch,
+) -> (Vec<[f32; 3]>, Matches) {
+    let sm = stereo_match(
+        left, left_desc, right, right_desc, left_img, right_img, params, scratch,
+    );
+    let mut points = vec![[f32::NAN; 3]; left.len()];
+    let mut matches = Matches::default();
+    for m in &sm {
+        let kl = &left[m.left as usize];
+        let kr = &right[m.right as usize];
+        let p3 = triangulate(calib, kl.x, kl.y, m.disparity);
+        points[m.left as usize] = p3;
+        matches.pairs.push(Match {
+            query: m.left,
+            train: m.right,
+            distance: m.distance,
+        });
+        matches.query_xy.push([kl.x, kl.y]);
+        matches.train_xy.push([kr.x, kr.y]);
+        matches.query_points.push(p3);
+    }
+    (points, matches)
 }
 
 /// The 3D point in the left camera frame (mm) of pixel (x, y) at `disparity`; NaN when the

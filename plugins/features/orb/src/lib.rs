@@ -9,13 +9,11 @@ pub mod extract;
 pub mod fast;
 pub mod pyramid;
 
-use misslam_features_matching::stereo::{
-    stereo_match, triangulate, GrayView, StereoParams, StereoScratch,
-};
+use misslam_features_matching::stereo::{stereo_points, GrayView, StereoParams, StereoScratch};
 use misslam_framework::{
     BuildContext, BuildError, Descriptors, Features, Flow, FrameInfo, Image, Inputs, Keypoint,
-    Mask, Match, Matches, Node, NodeContext, NodeError, NodeResult, Outputs, PortSpec, PortType,
-    Registry, StereoFrame, TypedPlugin,
+    Mask, Matches, Node, NodeContext, NodeError, NodeResult, Outputs, PortSpec, PortType, Registry,
+    StereoFrame, TypedPlugin,
 };
 
 pub use extract::{Distribution, OrbParams};
@@ -67,23 +65,8 @@ impl Extractor {
             &mut self.keypoints,
             &mut self.descriptors,
         )?;
-        if let Some(m) = mask.filter(|m| m.width == img.width && m.height == img.height) {
-            let valid = |k: &Keypoint| {
-                let (x, y) = (k.x.round() as usize, k.y.round() as usize);
-                x < w && y < h && m.data[y * w + x] != 0
-            };
-            let keep: Vec<bool> = self.keypoints.iter().map(valid).collect();
-            let mut i = 0;
-            self.keypoints.retain(|_| {
-                i += 1;
-                keep[i - 1]
-            });
-            let mut i = 0;
-            self.descriptors.retain(|_| {
-                i += 1;
-                keep[i - 1]
-            });
-        }
+        let mask = mask.filter(|m| m.width == img.width && m.height == img.height);
+        misslam_features_matching::retain_in_mask(&mut self.keypoints, &mut self.descriptors, mask);
         Ok(())
     }
 
@@ -129,7 +112,7 @@ impl OrbNode {
         let (w, h) = (pair.left.width as usize, pair.left.height as usize);
         let ld = Descriptors::Binary256(std::mem::take(&mut self.left.descriptors));
         let rd = Descriptors::Binary256(std::mem::take(&mut self.right.descriptors));
-        let sm = stereo_match(
+        let (points, matches) = stereo_points(
             &self.left.keypoints,
             &ld,
             &self.right.keypoints,
@@ -144,25 +127,10 @@ impl OrbNode {
                 height: h,
                 data: self.right.gray(),
             },
+            &pair.calib,
             &p.stereo,
             &mut self.stereo,
         );
-        let mut points = vec![[f32::NAN; 3]; self.left.keypoints.len()];
-        let mut matches = Matches::default();
-        for m in &sm {
-            let kl = &self.left.keypoints[m.left as usize];
-            let kr = &self.right.keypoints[m.right as usize];
-            let p3 = triangulate(&pair.calib, kl.x, kl.y, m.disparity);
-            points[m.left as usize] = p3;
-            matches.pairs.push(Match {
-                query: m.left,
-                train: m.right,
-                distance: m.distance,
-            });
-            matches.query_xy.push([kl.x, kl.y]);
-            matches.train_xy.push([kr.x, kr.y]);
-            matches.query_points.push(p3);
-        }
         if let Descriptors::Binary256(d) = rd {
             self.right.descriptors = d;
         }

@@ -14,8 +14,8 @@ use crate::pose::{estimate, Observation, RansacParams, StereoCamera};
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct TrackerParams {
-    /// Brute-force matching (fallback and relocalisation): ratio, distance limit (Hamming bits
-    /// for ORB; use about 0.4 for SURF's unit descriptors), cross-check.
+    /// Brute-force matching (fallback and relocalisation): ratio, distance limits (Hamming bits
+    /// for ORB, L2 for SURF), cross-check. The guided search uses the same limits.
     pub matching: MatchParams,
     /// Guided matching: search radius around the predicted position, pixels.
     pub guided_radius_px: f32,
@@ -52,6 +52,7 @@ impl Default for TrackerParams {
             matching: MatchParams {
                 ratio: 0.8,
                 max_distance: 64.0,
+                max_distance_l2: 0.4,
                 cross_check: false,
             },
             guided_radius_px: 20.0,
@@ -522,7 +523,7 @@ impl Tracker {
             &grid,
             &GuidedParams {
                 radius_px: self.params.guided_radius_px,
-                max_distance: self.params.matching.max_distance,
+                max_distance: self.params.matching.limit(&features.descriptors),
                 ratio: self.params.guided_ratio,
                 max_octave_gap: 2,
             },
