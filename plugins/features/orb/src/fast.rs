@@ -145,7 +145,11 @@ fn detect_sse2(
     let zero = _mm_setzero_si128();
     for y in y0..y1 {
         let mut x = x0;
-        while x + 16 <= x1 {
+        // Chunks of 16; the last one of a row is moved back to end at x1 (when the row is at
+        // least 16 wide) and ignores the pixels already done, so no pixel goes to the slow tail.
+        while x + 16 <= x1 || (x < x1 && x1 >= x0 + 16) {
+            let skip = (x + 16).saturating_sub(x1);
+            x -= skip;
             let c = y * w + x;
             // Every load reads img[c + o .. c + o + 16] with |o| <= 3 w + 3: inside the image,
             // because 3 <= x, x + 15 + 3 < w and 3 <= y < h - 3.
@@ -184,7 +188,8 @@ fn detect_sse2(
             };
             let quick_b = _mm_and_si128(pair(&b, [0, 4, 8, 12]), pair(&b, [2, 6, 10, 14]));
             let quick_d = _mm_and_si128(pair(&d, [0, 4, 8, 12]), pair(&d, [2, 6, 10, 14]));
-            if _mm_movemask_epi8(_mm_or_si128(quick_b, quick_d)) == 0 {
+            let done = (1u32 << skip) - 1;
+            if (_mm_movemask_epi8(_mm_or_si128(quick_b, quick_d)) as u32) & !done == 0 {
                 x += 16;
                 continue;
             }
@@ -204,7 +209,7 @@ fn detect_sse2(
                 }
                 any
             };
-            let mut mask = _mm_movemask_epi8(_mm_or_si128(arc9(&b), arc9(&d))) as u32;
+            let mut mask = (_mm_movemask_epi8(_mm_or_si128(arc9(&b), arc9(&d))) as u32) & !done;
             while mask != 0 {
                 let i = mask.trailing_zeros() as usize;
                 mask &= mask - 1;
@@ -344,7 +349,7 @@ fn detect_scalar(
 }
 
 /// Keeps the corners that are strict maxima of the score in their 3x3 neighbourhood (ties
-/// broken by raster order, so a plateau keeps exactly one). `map` is a zeroed `w * h` buffer
+/// broken by raster order, so a plateau keeps exactly one). Each pixel must appear at most once. `map` is a zeroed `w * h` buffer
 /// and is zeroed again on return.
 pub fn non_max_suppression(corners: &mut Vec<Corner>, w: usize, map: &mut [u8]) {
     for c in corners.iter() {
@@ -384,8 +389,6 @@ pub fn non_max_suppression(corners: &mut Vec<Corner>, w: usize, map: &mut [u8]) 
         k += 1;
         keep
     });
-    // The same pixel may have been detected twice (overlapping detection passes).
-    corners.dedup_by(|a, b| a.x == b.x && a.y == b.y);
 }
 
 #[cfg(test)]
@@ -454,6 +457,19 @@ mod tests {
                 portable, out,
                 "portable and dispatched detectors differ at {t}"
             );
+            // Sub-rectangles as the low-threshold retry uses them: 30 wide (a chunk moved back
+            // to end at the edge), 10 wide (narrower than a chunk), offset.
+            for rect in [(5, 4, 35, 40), (10, 10, 20, 30), (21, 6, 61, 20)] {
+                let mut part = Vec::new();
+                detect(&img, w, h, rect, t, &mut FastScratch::default(), &mut part);
+                let inside = |&(x, y): &(u32, u32)| {
+                    (rect.0 as u32..rect.2 as u32).contains(&x)
+                        && (rect.1 as u32..rect.3 as u32).contains(&y)
+                };
+                let want_part: Vec<(u32, u32)> = want.iter().copied().filter(inside).collect();
+                let got_part: Vec<(u32, u32)> = part.iter().map(|c| (c.x, c.y)).collect();
+                assert_eq!(got_part, want_part, "threshold {t}, rect {rect:?}");
+            }
             assert!(!want.is_empty());
             // The score is the largest threshold that keeps the corner.
             for c in &out {

@@ -17,6 +17,9 @@ pub struct Level {
 }
 
 /// Resizes `src` (`sw` x `sh`) into `dst` (`dw` x `dh`) bilinearly, pixel centres aligned.
+/// Separable: each source row is resized horizontally once (8-bit fixed point) and kept while
+/// two consecutive output rows use it; the vertical blend is a plain loop the compiler
+/// vectorises.
 pub fn resize_bilinear(src: &[u8], sw: usize, sh: usize, dst: &mut Vec<u8>, dw: usize, dh: usize) {
     dst.clear();
     dst.resize(dw * dh, 0);
@@ -25,29 +28,42 @@ pub fn resize_bilinear(src: &[u8], sw: usize, sh: usize, dst: &mut Vec<u8>, dw: 
     }
     let (fx, fy) = (sw as f32 / dw as f32, sh as f32 / dh as f32);
     // Per column: left source index and 8-bit weight of the right neighbour.
-    let cols: Vec<(usize, u32)> = (0..dw)
+    let cols: Vec<(usize, u16)> = (0..dw)
         .map(|x| {
             let s = ((x as f32 + 0.5) * fx - 0.5).clamp(0.0, (sw - 1) as f32);
             let i = (s as usize).min(sw.saturating_sub(2));
-            let a = ((s - i as f32) * 256.0).round().clamp(0.0, 256.0) as u32;
+            let a = ((s - i as f32) * 256.0).round().clamp(0.0, 256.0) as u16;
             (i, a)
         })
         .collect();
-    let mut tmp = vec![0u32; dw];
+    let horizontal = |row: &[u8], out: &mut [u16]| {
+        for (o, &(i, a)) in out.iter_mut().zip(&cols) {
+            let i1 = (i + 1).min(sw - 1);
+            *o = row[i] as u16 * (256 - a) + row[i1] as u16 * a;
+        }
+    };
+    let (mut top, mut bot) = (vec![0u16; dw], vec![0u16; dw]);
+    let (mut top_row, mut bot_row) = (usize::MAX, usize::MAX);
     for y in 0..dh {
         let s = ((y as f32 + 0.5) * fy - 0.5).clamp(0.0, (sh - 1) as f32);
         let j = (s as usize).min(sh.saturating_sub(2));
+        let j1 = (j + 1).min(sh - 1);
         let b = ((s - j as f32) * 256.0).round().clamp(0.0, 256.0) as u32;
-        let r0 = &src[j * sw..(j + 1) * sw];
-        let r1 = &src[((j + 1).min(sh - 1)) * sw..((j + 1).min(sh - 1) + 1) * sw];
-        for (t, &(i, a)) in tmp.iter_mut().zip(&cols) {
-            let i1 = (i + 1).min(sw - 1);
-            let top = r0[i] as u32 * (256 - a) + r0[i1] as u32 * a;
-            let bot = r1[i] as u32 * (256 - a) + r1[i1] as u32 * a;
-            *t = top * (256 - b) + bot * b;
+        if top_row != j {
+            if bot_row == j {
+                std::mem::swap(&mut top, &mut bot);
+                bot_row = usize::MAX;
+            } else {
+                horizontal(&src[j * sw..(j + 1) * sw], &mut top);
+            }
+            top_row = j;
         }
-        for (d, &t) in dst[y * dw..(y + 1) * dw].iter_mut().zip(&tmp) {
-            *d = ((t + (1 << 15)) >> 16) as u8;
+        if bot_row != j1 {
+            horizontal(&src[j1 * sw..(j1 + 1) * sw], &mut bot);
+            bot_row = j1;
+        }
+        for ((d, &t), &u) in dst[y * dw..(y + 1) * dw].iter_mut().zip(&top).zip(&bot) {
+            *d = ((t as u32 * (256 - b) + u as u32 * b + (1 << 15)) >> 16) as u8;
         }
     }
 }

@@ -19,7 +19,9 @@ pub struct SurfParams {
     pub intervals: usize,
     /// Sampling step of the first octave, pixels (it doubles per octave).
     pub init_sample: usize,
-    /// Keep at most this many keypoints, the strongest (0: all).
+    /// Keep at most this many keypoints, the strongest (0: all). Also accepted as
+    /// `n_features`, ORB's name, so a graph swaps the two by its plugin line alone.
+    #[serde(alias = "n_features")]
     pub max_keypoints: usize,
     /// Upright SURF (U-SURF): no orientation, faster, for a camera that does not roll.
     pub upright: bool,
