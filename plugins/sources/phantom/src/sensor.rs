@@ -14,7 +14,8 @@ pub(crate) fn quantize(v: f32, sigma: f32, noise: &mut Noise, rng: &mut SplitMix
     } else {
         v
     };
-    noisy.round().clamp(0.0, 255.0) as u8
+    // Round half up of a non-negative value: the same as `round` here, without the libm call.
+    (noisy.clamp(0.0, 255.0) + 0.5) as u8
 }
 
 /// Entries of the table of standard normal samples the sensor noise draws from.
