@@ -20,6 +20,7 @@ pub const BUILTIN: &[RegisterFn] = &[
     misslam_sink_files::register,
     misslam_image_gray::register,
     misslam_depth_sgm::register,
+    misslam_depth_postprocess::register,
     misslam_eval_depth::register,
     misslam_eval_recon::register,
     misslam_eval_tracking::register,
@@ -61,6 +62,7 @@ mod tests {
             [
                 "deformation.batch",
                 "deformation.decoupled",
+                "depth.postprocess",
                 "depth.sgm",
                 "eval.depth",
                 "eval.recon",

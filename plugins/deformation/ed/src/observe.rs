@@ -20,7 +20,8 @@ pub fn scan_from_depth(
     (vertices, normals)
 }
 
-/// [`scan_from_depth`] into reused buffers (a node calls it every frame).
+/// [`scan_from_depth`] into reused buffers (a node calls it every frame); the maps are those of
+/// `depth.postprocess` ([`misslam_depth_postprocess::maps::vertex_normal_maps_into`]).
 pub fn scan_from_depth_into(
     depth: &[f32],
     k: &Intrinsics,
@@ -28,65 +29,21 @@ pub fn scan_from_depth_into(
     vertices: &mut Vec<[f32; 3]>,
     normals: &mut Vec<[f32; 3]>,
 ) {
-    let (w, h) = (k.width as usize, k.height as usize);
-    let nan = [f32::NAN; 3];
-    let lift = |i: usize| -> [f32; 3] {
-        let z = depth[i];
-        if !(z.is_finite() && z > 0.0) {
-            return nan;
-        }
-        let (u, v) = ((i % w) as f64, (i / w) as f64);
-        [
-            ((u - k.cx) / k.fx * z as f64) as f32,
-            ((v - k.cy) / k.fy * z as f64) as f32,
-            z,
-        ]
+    let pinhole = misslam_depth_postprocess::Pinhole {
+        width: k.width as usize,
+        height: k.height as usize,
+        fx: k.fx,
+        fy: k.fy,
+        cx: k.cx,
+        cy: k.cy,
     };
-    (0..w * h)
-        .into_par_iter()
-        .map(lift)
-        .collect_into_vec(vertices);
-    let vertices = &*vertices;
-    (0..w * h)
-        .into_par_iter()
-        .map(|i| {
-            let (x, y) = (i % w, i / w);
-            if x == 0 || y == 0 || x + 1 >= w || y + 1 >= h || !vertices[i][2].is_finite() {
-                return nan;
-            }
-            let (l, r, u, d) = (
-                vertices[i - 1],
-                vertices[i + 1],
-                vertices[i - w],
-                vertices[i + w],
-            );
-            let z = vertices[i][2];
-            if [l, r, u, d]
-                .iter()
-                .any(|p| !p[2].is_finite() || (p[2] - z).abs() > max_step_mm)
-            {
-                return nan;
-            }
-            let a = [r[0] - l[0], r[1] - l[1], r[2] - l[2]];
-            let b = [d[0] - u[0], d[1] - u[1], d[2] - u[2]];
-            let n = [
-                a[1] * b[2] - a[2] * b[1],
-                a[2] * b[0] - a[0] * b[2],
-                a[0] * b[1] - a[1] * b[0],
-            ];
-            let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
-            if len.is_nan() || len <= 0.0 {
-                return nan;
-            }
-            let p = vertices[i];
-            let s = if n[0] * p[0] + n[1] * p[1] + n[2] * p[2] > 0.0 {
-                -1.0 / len
-            } else {
-                1.0 / len
-            };
-            n.map(|c| c * s)
-        })
-        .collect_into_vec(normals);
+    misslam_depth_postprocess::maps::vertex_normal_maps_into(
+        depth,
+        &pinhole,
+        max_step_mm,
+        vertices,
+        normals,
+    );
 }
 
 /// Area-weighted unit vertex normals of a triangle mesh, following the winding (NaN for a vertex

@@ -1,0 +1,347 @@
+//! `depth.postprocess`: turns a stereo node's disparity (or depth) into the cleaned depth, vertex
+//! map and normal map the deformation and fusion stages read (method.md 1.3): disparity to
+//! depth, range limits, masks (the black rectification border, specular highlights), optional
+//! edge-preserving smoothing, and vertex / normal maps. The operations are the plain functions
+//! of [`maps`].
+#![deny(missing_docs)]
+
+pub mod maps;
+
+use misslam_framework::{
+    BuildContext, BuildError, DepthMap, DisparityMap, FloatMap, Flow, FrameInfo, Inputs, Metrics,
+    Node, NodeContext, NodeError, NodeResult, NormalMap, Outputs, PortSpec, PortType, Registry,
+    StereoCalib, StereoFrame, TypedPlugin, VertexMap,
+};
+
+pub use maps::Pinhole;
+
+/// Edge-preserving smoothing.
+#[derive(
+    Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, schemars::JsonSchema,
+)]
+#[serde(rename_all = "snake_case")]
+pub enum Smoothing {
+    /// None.
+    None,
+    /// Bilateral filter on depth (`smooth_radius`, `smooth_sigma_px`, `smooth_sigma_mm`).
+    Bilateral,
+}
+
+/// Parameters of `depth.postprocess`.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// Nearest valid depth, mm.
+    pub min_depth_mm: f32,
+    /// Farthest valid depth, mm.
+    pub max_depth_mm: f32,
+    /// Invalidate the black rectification border: the pair's left mask when it has one, else
+    /// pixels whose brightest channel is below `black_level`.
+    pub mask_border: bool,
+    /// Brightest-channel level below which a pixel counts as border (without a left mask).
+    pub black_level: u8,
+    /// Invalidate specular highlights (stereo matching is wrong on them).
+    pub mask_specular: bool,
+    /// A highlight's brightest channel is at least this.
+    pub specular_min_value: u8,
+    /// A highlight's saturation, (max - min) / max, is at most this.
+    pub specular_max_saturation: f32,
+    /// Grow the highlight mask by this many pixels.
+    pub specular_dilate_px: usize,
+    /// Edge-preserving smoothing of depth.
+    pub smoothing: Smoothing,
+    /// Bilateral radius, pixels.
+    pub smooth_radius: usize,
+    /// Bilateral spatial sigma, pixels.
+    pub smooth_sigma_px: f32,
+    /// Bilateral depth sigma, mm (steps much larger than this are kept).
+    pub smooth_sigma_mm: f32,
+    /// No normal across a depth step larger than this, mm (an occlusion edge).
+    pub max_normal_step_mm: f32,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params {
+            min_depth_mm: 10.0,
+            max_depth_mm: 300.0,
+            mask_border: true,
+            black_level: 10,
+            mask_specular: true,
+            specular_min_value: 240,
+            specular_max_saturation: 0.2,
+            specular_dilate_px: 3,
+            smoothing: Smoothing::Bilateral,
+            smooth_radius: 3,
+            smooth_sigma_px: 2.0,
+            smooth_sigma_mm: 1.5,
+            max_normal_step_mm: 3.0,
+        }
+    }
+}
+
+impl Params {
+    /// Checks the ranges; the message names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        if !(self.min_depth_mm >= 0.0 && self.max_depth_mm > self.min_depth_mm) {
+            return Err(format!(
+                "`min_depth_mm` ({}) must be >= 0 and below `max_depth_mm` ({})",
+                self.min_depth_mm, self.max_depth_mm
+            ));
+        }
+        if !(0.0..=1.0).contains(&self.specular_max_saturation) {
+            return Err(format!(
+                "`specular_max_saturation` must lie in [0, 1], got {}",
+                self.specular_max_saturation
+            ));
+        }
+        if self.specular_dilate_px > 32 || self.smooth_radius > 15 {
+            return Err(format!(
+                "`specular_dilate_px` ({}) must be <= 32 and `smooth_radius` ({}) <= 15",
+                self.specular_dilate_px, self.smooth_radius
+            ));
+        }
+        for (name, v) in [
+            ("smooth_sigma_px", self.smooth_sigma_px),
+            ("smooth_sigma_mm", self.smooth_sigma_mm),
+            ("max_normal_step_mm", self.max_normal_step_mm),
+        ] {
+            if v.is_nan() || v <= 0.0 {
+                return Err(format!("`{name}` must be positive, got {v}"));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The cleaned maps of one frame.
+#[derive(Clone, Debug)]
+pub struct Cleaned {
+    /// Depth, mm, NaN invalid.
+    pub depth: Vec<f32>,
+    /// Camera-frame points, mm.
+    pub vertices: Vec<[f32; 3]>,
+    /// Unit normals towards the camera.
+    pub normals: Vec<[f32; 3]>,
+    /// Pixels invalidated by the range limits.
+    pub out_of_range: usize,
+    /// Pixels invalidated by the border mask.
+    pub border: usize,
+    /// Pixels invalidated by the specular mask.
+    pub specular: usize,
+}
+
+/// Runs the whole chain on depth (mm) with an optional pair for the masks.
+pub fn clean(
+    mut depth: Vec<f32>,
+    calib: &StereoCalib,
+    pair: Option<&StereoFrame>,
+    p: &Params,
+) -> Result<Cleaned, String> {
+    let (w, h) = (calib.width as usize, calib.height as usize);
+    if depth.len() != w * h {
+        return Err(format!(
+            "the map has {} values, the calibration says {w}x{h}",
+            depth.len()
+        ));
+    }
+    let out_of_range = maps::limit_range(&mut depth, p.min_depth_mm, p.max_depth_mm);
+    let (mut border, mut specular) = (0, 0);
+    if let Some(pair) = pair {
+        let img = &pair.left;
+        if (img.width as usize, img.height as usize) != (w, h) {
+            return Err(format!(
+                "the left image is {}x{} but the depth is {w}x{h}",
+                img.width, img.height
+            ));
+        }
+        let c = img.channels as usize;
+        if p.mask_border {
+            let invalid: Vec<bool> = match pair.left_mask.as_ref().filter(|m| m.data.len() == w * h)
+            {
+                Some(m) => m.data.iter().map(|&v| v == 0).collect(),
+                None => img
+                    .data
+                    .chunks_exact(c)
+                    .map(|px| *px.iter().max().unwrap_or(&0) < p.black_level)
+                    .collect(),
+            };
+            for (z, bad) in depth.iter_mut().zip(invalid) {
+                if bad && z.is_finite() {
+                    *z = f32::NAN;
+                    border += 1;
+                }
+            }
+        }
+        if p.mask_specular {
+            let m = maps::specular_mask(
+                &img.data,
+                c,
+                w,
+                h,
+                p.specular_min_value,
+                p.specular_max_saturation,
+                p.specular_dilate_px,
+            );
+            for (z, &bad) in depth.iter_mut().zip(&m) {
+                if bad != 0 && z.is_finite() {
+                    *z = f32::NAN;
+                    specular += 1;
+                }
+            }
+        }
+    }
+    if p.smoothing == Smoothing::Bilateral {
+        depth = maps::bilateral(
+            &depth,
+            w,
+            h,
+            p.smooth_radius,
+            p.smooth_sigma_px,
+            p.smooth_sigma_mm,
+        );
+    }
+    let k = Pinhole {
+        width: w,
+        height: h,
+        fx: calib.fx,
+        fy: calib.fy,
+        cx: calib.cx,
+        cy: calib.cy,
+    };
+    let (mut vertices, mut normals) = (Vec::new(), Vec::new());
+    maps::vertex_normal_maps_into(
+        &depth,
+        &k,
+        p.max_normal_step_mm,
+        &mut vertices,
+        &mut normals,
+    );
+    Ok(Cleaned {
+        depth,
+        vertices,
+        normals,
+        out_of_range,
+        border,
+        specular,
+    })
+}
+
+/// The node.
+pub struct PostprocessNode {
+    params: Params,
+}
+
+impl Node for PostprocessNode {
+    fn process(
+        &mut self,
+        _: &mut NodeContext,
+        _: FrameInfo,
+        inputs: &Inputs,
+        outputs: &mut Outputs,
+    ) -> NodeResult<Flow> {
+        let pair = inputs.opt::<StereoFrame>("stereo")?;
+        let (depth, calib) = if let Some(d) = inputs.opt::<DisparityMap>("disparity")? {
+            let c = d.calib;
+            (
+                d.map
+                    .data
+                    .iter()
+                    .map(|&v| c.depth_from_disparity(v))
+                    .collect(),
+                c,
+            )
+        } else if let Some(d) = inputs.opt::<DepthMap>("depth")? {
+            (d.map.data.clone(), d.calib)
+        } else {
+            return Err(NodeError::msg(
+                "neither `disparity` nor `depth` received anything on this frame",
+            ));
+        };
+        let c =
+            clean(depth, &calib, pair.map(|p| p.as_ref()), &self.params).map_err(NodeError::msg)?;
+        let n = c.depth.len().max(1) as f64;
+        let valid = c.depth.iter().filter(|v| v.is_finite()).count() as f64;
+        let mut m = Metrics::default();
+        m.values
+            .insert("postprocess.valid_pct".into(), 100.0 * valid / n);
+        m.values.insert(
+            "postprocess.specular_pct".into(),
+            100.0 * c.specular as f64 / n,
+        );
+        m.values
+            .insert("postprocess.border_pct".into(), 100.0 * c.border as f64 / n);
+        m.values.insert(
+            "postprocess.out_of_range_pct".into(),
+            100.0 * c.out_of_range as f64 / n,
+        );
+        let (w, h) = (calib.width, calib.height);
+        outputs.put(
+            "depth",
+            DepthMap {
+                map: FloatMap {
+                    width: w,
+                    height: h,
+                    data: c.depth,
+                },
+                calib,
+            },
+        )?;
+        outputs.put(
+            "vertices",
+            VertexMap {
+                width: w,
+                height: h,
+                points: c.vertices,
+            },
+        )?;
+        outputs.put(
+            "normals",
+            NormalMap {
+                width: w,
+                height: h,
+                normals: c.normals,
+            },
+        )?;
+        outputs.put("metrics", m)?;
+        Ok(Flow::Continue)
+    }
+}
+
+/// Builds the node.
+pub fn build(params: Params, _: &BuildContext) -> Result<PostprocessNode, BuildError> {
+    params.validate().map_err(|m| BuildError::Param {
+        key: None,
+        path: String::new(),
+        message: m,
+    })?;
+    Ok(PostprocessNode { params })
+}
+
+/// Registers `depth.postprocess`.
+pub fn register(registry: &mut Registry) -> Result<(), String> {
+    registry.register(TypedPlugin::new(
+        "depth.postprocess",
+        "disparity to depth, range limits, border and specular masks, bilateral smoothing, vertex and normal maps",
+        vec![
+            PortSpec::optional("disparity", PortType::Disparity, "a stereo node's disparity, px"),
+            PortSpec::optional("depth", PortType::Depth, "or depth, mm"),
+            PortSpec::optional(
+                "stereo",
+                PortType::Stereo,
+                "the pair (its left image and mask drive the border and specular masks)",
+            ),
+        ],
+        vec![
+            PortSpec::new("depth", PortType::Depth, "cleaned depth, mm, NaN invalid"),
+            PortSpec::new("vertices", PortType::VertexMap, "camera-frame points, mm"),
+            PortSpec::new("normals", PortType::NormalMap, "unit normals towards the camera"),
+            PortSpec::new(
+                "metrics",
+                PortType::Metrics,
+                "postprocess.valid_pct, specular_pct, border_pct, out_of_range_pct",
+            ),
+        ],
+        build,
+    ))
+}

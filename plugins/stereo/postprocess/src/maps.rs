@@ -1,0 +1,341 @@
+//! The depth-map operations of `depth.postprocess`, as plain functions on row-major slices
+//! (NaN marks an invalid pixel throughout).
+
+use rayon::prelude::*;
+
+/// Pinhole intrinsics of a map.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Pinhole {
+    /// Width, pixels.
+    pub width: usize,
+    /// Height, pixels.
+    pub height: usize,
+    /// Focal length x, pixels.
+    pub fx: f64,
+    /// Focal length y, pixels.
+    pub fy: f64,
+    /// Principal point x, pixels.
+    pub cx: f64,
+    /// Principal point y, pixels.
+    pub cy: f64,
+}
+
+/// Sets depth outside `[min_mm, max_mm]` (and non-finite or non-positive depth) to NaN; returns
+/// how many pixels it invalidated.
+pub fn limit_range(depth: &mut [f32], min_mm: f32, max_mm: f32) -> usize {
+    let mut n = 0;
+    for z in depth.iter_mut() {
+        let in_range = z.is_finite() && *z > 0.0 && *z >= min_mm && *z <= max_mm;
+        // NaN was already invalid and is not counted.
+        if !in_range && !z.is_nan() {
+            *z = f32::NAN;
+            n += 1;
+        }
+    }
+    n
+}
+
+/// Specular highlights of an RGB (or gray) image: pixels whose brightest channel reaches
+/// `min_value` with saturation `(max - min) / max` at most `max_saturation`, grown by
+/// `dilate_px` (the highlight's rim is unreliable too). Returns 1 where masked.
+pub fn specular_mask(
+    data: &[u8],
+    channels: usize,
+    width: usize,
+    height: usize,
+    min_value: u8,
+    max_saturation: f32,
+    dilate_px: usize,
+) -> Vec<u8> {
+    let mut m: Vec<u8> = data
+        .chunks_exact(channels)
+        .map(|px| {
+            let hi = *px.iter().max().unwrap_or(&0);
+            let lo = *px.iter().min().unwrap_or(&0);
+            let sat = if hi == 0 {
+                0.0
+            } else {
+                (hi - lo) as f32 / hi as f32
+            };
+            (hi >= min_value && sat <= max_saturation) as u8
+        })
+        .collect();
+    if dilate_px > 0 {
+        m = dilate(&m, width, height, dilate_px);
+    }
+    m
+}
+
+/// Square dilation of a 0/1 mask by `r` pixels (separable max filter).
+pub fn dilate(m: &[u8], w: usize, h: usize, r: usize) -> Vec<u8> {
+    let mut tmp = vec![0u8; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let (a, b) = (x.saturating_sub(r), (x + r).min(w - 1));
+            tmp[y * w + x] = *m[y * w + a..=y * w + b].iter().max().unwrap_or(&0);
+        }
+    }
+    let mut out = vec![0u8; w * h];
+    for y in 0..h {
+        let (a, b) = (y.saturating_sub(r), (y + r).min(h - 1));
+        for x in 0..w {
+            out[y * w + x] = (a..=b).map(|yy| tmp[yy * w + x]).max().unwrap_or(0);
+        }
+    }
+    out
+}
+
+/// Edge-preserving smoothing: a bilateral filter over valid pixels within `radius`, weighted by
+/// the pixel distance (sigma `sigma_px`) and the depth difference (sigma `sigma_mm`), so depth
+/// steps (tissue folds, instrument edges) stay sharp. Invalid pixels stay invalid and are never
+/// used.
+pub fn bilateral(
+    depth: &[f32],
+    w: usize,
+    h: usize,
+    radius: usize,
+    sigma_px: f32,
+    sigma_mm: f32,
+) -> Vec<f32> {
+    let r = radius as i64;
+    let spatial: Vec<f32> = (-r..=r)
+        .flat_map(|dy| {
+            (-r..=r)
+                .map(move |dx| (-((dx * dx + dy * dy) as f32) / (2.0 * sigma_px * sigma_px)).exp())
+        })
+        .collect();
+    // Range weights from a table over |d| in [0, 4 sigma) (beyond it the weight is below
+    // 3.4e-4 and taken as 0): no exp per neighbour.
+    const RANGE_LUT: usize = 1024;
+    let lut_scale = RANGE_LUT as f32 / (4.0 * sigma_mm);
+    let range: Vec<f32> = (0..RANGE_LUT)
+        .map(|k| {
+            let d = (k as f32 + 0.5) / lut_scale;
+            (-(d * d) / (2.0 * sigma_mm * sigma_mm)).exp()
+        })
+        .collect();
+    (0..w * h)
+        .into_par_iter()
+        .map(|i| {
+            let z = depth[i];
+            if !z.is_finite() {
+                return f32::NAN;
+            }
+            let (x, y) = ((i % w) as i64, (i / w) as i64);
+            let (mut num, mut den) = (0.0f32, 0.0f32);
+            for dy in -r..=r {
+                let yy = y + dy;
+                if yy < 0 || yy >= h as i64 {
+                    continue;
+                }
+                for dx in -r..=r {
+                    let xx = x + dx;
+                    if xx < 0 || xx >= w as i64 {
+                        continue;
+                    }
+                    let v = depth[yy as usize * w + xx as usize];
+                    if !v.is_finite() {
+                        continue;
+                    }
+                    let k = ((v - z).abs() * lut_scale) as usize;
+                    let Some(&rw) = range.get(k) else { continue };
+                    let wgt = spatial[((dy + r) * (2 * r + 1) + dx + r) as usize] * rw;
+                    num += wgt * v;
+                    den += wgt;
+                }
+            }
+            num / den
+        })
+        .collect()
+}
+
+/// Lifts depth to camera-frame vertices `Z K^-1 [u v 1]^T` and normals. A normal is the cross
+/// product of central differences, turned towards the camera; it is NaN when a neighbour is
+/// invalid or a depth step to a neighbour exceeds `max_step_mm` (an occlusion edge).
+pub fn vertex_normal_maps_into(
+    depth: &[f32],
+    k: &Pinhole,
+    max_step_mm: f32,
+    vertices: &mut Vec<[f32; 3]>,
+    normals: &mut Vec<[f32; 3]>,
+) {
+    let (w, h) = (k.width, k.height);
+    let nan = [f32::NAN; 3];
+    (0..w * h)
+        .into_par_iter()
+        .map(|i| {
+            let z = depth[i];
+            if !(z.is_finite() && z > 0.0) {
+                return nan;
+            }
+            let (u, v) = ((i % w) as f64, (i / w) as f64);
+            [
+                ((u - k.cx) / k.fx * z as f64) as f32,
+                ((v - k.cy) / k.fy * z as f64) as f32,
+                z,
+            ]
+        })
+        .collect_into_vec(vertices);
+    let vertices = &*vertices;
+    (0..w * h)
+        .into_par_iter()
+        .map(|i| {
+            let (x, y) = (i % w, i / w);
+            if x == 0 || y == 0 || x + 1 >= w || y + 1 >= h || !vertices[i][2].is_finite() {
+                return nan;
+            }
+            let (l, r, u, d) = (
+                vertices[i - 1],
+                vertices[i + 1],
+                vertices[i - w],
+                vertices[i + w],
+            );
+            let z = vertices[i][2];
+            if [l, r, u, d]
+                .iter()
+                .any(|p| !p[2].is_finite() || (p[2] - z).abs() > max_step_mm)
+            {
+                return nan;
+            }
+            let a = [r[0] - l[0], r[1] - l[1], r[2] - l[2]];
+            let b = [d[0] - u[0], d[1] - u[1], d[2] - u[2]];
+            let n = [
+                a[1] * b[2] - a[2] * b[1],
+                a[2] * b[0] - a[0] * b[2],
+                a[0] * b[1] - a[1] * b[0],
+            ];
+            let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+            if len.is_nan() || len <= 0.0 {
+                return nan;
+            }
+            let p = vertices[i];
+            let s = if n[0] * p[0] + n[1] * p[1] + n[2] * p[2] > 0.0 {
+                -1.0 / len
+            } else {
+                1.0 / len
+            };
+            n.map(|c| c * s)
+        })
+        .collect_into_vec(normals);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pinhole(w: usize, h: usize) -> Pinhole {
+        Pinhole {
+            width: w,
+            height: h,
+            fx: 500.0,
+            fy: 500.0,
+            cx: w as f64 / 2.0,
+            cy: h as f64 / 2.0,
+        }
+    }
+
+    #[test]
+    fn range_limits_invalidate_exactly_the_out_of_range_pixels() {
+        let mut d = vec![5.0, 50.0, f32::NAN, 500.0, f32::INFINITY, -3.0, 100.0];
+        let n = limit_range(&mut d, 10.0, 300.0);
+        assert_eq!(n, 4);
+        let valid: Vec<bool> = d.iter().map(|v| v.is_finite()).collect();
+        assert_eq!(valid, [false, true, false, false, false, false, true]);
+    }
+
+    #[test]
+    fn specular_mask_finds_white_saturated_pixels_and_dilates() {
+        let (w, h) = (9usize, 7usize);
+        let mut img = vec![[180u8, 60, 50]; w * h];
+        img[3 * w + 4] = [250, 248, 245]; // a highlight
+        img[w + 1] = [250, 120, 100]; // bright but red: tissue, not a highlight
+        let flat: Vec<u8> = img.iter().flatten().copied().collect();
+        let m = specular_mask(&flat, 3, w, h, 240, 0.15, 0);
+        assert_eq!(m.iter().map(|&v| v as usize).sum::<usize>(), 1);
+        assert_eq!(m[3 * w + 4], 1);
+        let m = specular_mask(&flat, 3, w, h, 240, 0.15, 1);
+        assert_eq!(m.iter().map(|&v| v as usize).sum::<usize>(), 9);
+        assert_eq!(m[2 * w + 3], 1);
+        assert_eq!(m[w + 1], 0);
+    }
+
+    #[test]
+    fn bilateral_smooths_noise_but_keeps_a_step() {
+        let (w, h) = (40usize, 20usize);
+        let mut s = 1u32;
+        let noisy: Vec<f32> = (0..w * h)
+            .map(|i| {
+                s = s.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                let n = ((s >> 8) as f32 / (1u32 << 24) as f32 - 0.5) * 0.6;
+                (if i % w < 20 { 60.0 } else { 80.0 }) + n
+            })
+            .collect();
+        let out = bilateral(&noisy, w, h, 3, 2.0, 1.0);
+        let rms = |v: &[f32], x0: usize, x1: usize, mean: f32| {
+            let mut acc = 0.0;
+            let mut n = 0;
+            for y in 0..h {
+                for x in x0..x1 {
+                    acc += (v[y * w + x] - mean).powi(2);
+                    n += 1;
+                }
+            }
+            (acc / n as f32).sqrt()
+        };
+        assert!(rms(&out, 4, 16, 60.0) < 0.5 * rms(&noisy, 4, 16, 60.0));
+        // Right at the step, each side keeps its own level (within the noise).
+        for y in 0..h {
+            assert!((out[y * w + 19] - 60.0).abs() < 0.3, "{}", out[y * w + 19]);
+            assert!((out[y * w + 20] - 80.0).abs() < 0.3, "{}", out[y * w + 20]);
+        }
+        // Invalid stays invalid and does not leak.
+        let mut holes = noisy.clone();
+        holes[5 * w + 5] = f32::NAN;
+        let out = bilateral(&holes, w, h, 3, 2.0, 1.0);
+        assert!(out[5 * w + 5].is_nan());
+        assert!(out
+            .iter()
+            .enumerate()
+            .all(|(i, v)| i == 5 * w + 5 || v.is_finite()));
+    }
+
+    #[test]
+    fn a_tilted_plane_lifts_exactly_with_its_normal() {
+        let (w, h) = (32usize, 24usize);
+        let k = pinhole(w, h);
+        // Plane z = 100 + 0.5 X: depth per pixel solves z = 100 + 0.5 (u - cx) z / fx.
+        let depth: Vec<f32> = (0..w * h)
+            .map(|i| {
+                let u = (i % w) as f64;
+                (100.0 / (1.0 - 0.5 * (u - k.cx) / k.fx)) as f32
+            })
+            .collect();
+        let (mut v, mut n) = (Vec::new(), Vec::new());
+        vertex_normal_maps_into(&depth, &k, 5.0, &mut v, &mut n);
+        let want = {
+            let l = (0.25f32 + 1.0).sqrt();
+            [0.5 / l, 0.0, -1.0 / l]
+        };
+        for y in 1..h - 1 {
+            for x in 1..w - 1 {
+                let p = v[y * w + x];
+                assert!((p[2] - (100.0 + 0.5 * p[0])).abs() < 1e-3);
+                let q = n[y * w + x];
+                for c in 0..3 {
+                    assert!((q[c] - want[c]).abs() < 1e-4, "{q:?}");
+                }
+            }
+        }
+        assert!(n[0][0].is_nan());
+        // A depth step beyond max_step: no normal across it.
+        let mut stepped = depth.clone();
+        for y in 0..h {
+            for x in 16..w {
+                stepped[y * w + x] += 20.0;
+            }
+        }
+        vertex_normal_maps_into(&stepped, &k, 5.0, &mut v, &mut n);
+        assert!(n[10 * w + 15][0].is_nan() && n[10 * w + 16][0].is_nan());
+        assert!(n[10 * w + 10][0].is_finite());
+    }
+}
