@@ -28,6 +28,7 @@ pub const BUILTIN: &[RegisterFn] = &[
     misslam_features_orb::register,
     misslam_features_surf::register,
     misslam_tracking_stereo::register,
+    misslam_fusion_surfel::register,
 ];
 
 /// Every built-in plugin; an id clash is an error naming both.
@@ -69,6 +70,7 @@ mod tests {
                 "eval.tracking",
                 "features.orb",
                 "features.surf",
+                "fusion.surfel",
                 "image.gray",
                 "sink.files",
                 "source.phantom",

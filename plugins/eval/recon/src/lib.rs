@@ -13,9 +13,10 @@
 #![deny(missing_docs)]
 
 use misslam_framework::metrics::FrameMeans;
+use misslam_framework::nalgebra::{Isometry3, Point3};
 use misslam_framework::{
     BuildContext, BuildError, Flow, FrameInfo, Inputs, Mesh, Node, NodeContext, NodeError,
-    NodeResult, Outputs, PointCloud, PortSpec, PortType, Registry, SurfelModel, TypedPlugin,
+    NodeResult, Outputs, PointCloud, PortSpec, PortType, Pose, Registry, SurfelModel, TypedPlugin,
 };
 
 /// Parameters of `eval.recon`.
@@ -285,7 +286,7 @@ impl Node for EvalRecon {
         outputs: &mut Outputs,
     ) -> NodeResult<Flow> {
         let gt = inputs.get::<Mesh>("mesh_gt")?;
-        let points: &[V3] = if let Some(m) = inputs.opt::<SurfelModel>("model")? {
+        let world_points: &[V3] = if let Some(m) = inputs.opt::<SurfelModel>("model")? {
             &m.positions
         } else if let Some(pc) = inputs.opt::<PointCloud>("points")? {
             &pc.positions
@@ -293,6 +294,42 @@ impl Node for EvalRecon {
             &mesh.vertices
         } else {
             return Err(NodeError::msg("connect one of `model`, `points` or `mesh`"));
+        };
+        // Scope-relative (robocentric) scoring: with both poses connected, the estimate is taken
+        // into its camera frame by its own pose and the GT surface by the true pose, so a pose
+        // error that the reconstruction shares does not count (the surgeon sees the model from
+        // the scope).
+        let pose = inputs.opt::<Pose>("pose")?;
+        let pose_gt = inputs.opt::<Pose>("pose_gt")?;
+        let relative;
+        let (points, gt): (&[V3], &Mesh) = match (pose, pose_gt) {
+            (Some(e), Some(g)) => {
+                let to_cam = |iso: &Isometry3<f64>, v: &[V3]| -> Vec<V3> {
+                    let inv = iso.inverse();
+                    v.iter()
+                        .map(|p| {
+                            let q = inv * Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+                            [q.x as f32, q.y as f32, q.z as f32]
+                        })
+                        .collect()
+                };
+                relative = (
+                    to_cam(&e.world_from_camera, world_points),
+                    Mesh {
+                        vertices: to_cam(&g.world_from_camera, &gt.vertices),
+                        triangles: gt.triangles.clone(),
+                        normals: None,
+                        colors: None,
+                    },
+                );
+                (&relative.0, &relative.1)
+            }
+            (None, None) => (world_points, gt.as_ref()),
+            _ => {
+                return Err(NodeError::msg(
+                    "connect both `pose` and `pose_gt` (camera-frame scoring) or neither",
+                ))
+            }
         };
         let (s, dist) = score(points, gt).map_err(NodeError::msg)?;
         let k = |name: &str| format!("{}.{name}", self.params.prefix);
@@ -305,7 +342,7 @@ impl Node for EvalRecon {
         outputs.put(
             "colored",
             PointCloud {
-                positions: points.to_vec(),
+                positions: world_points.to_vec(),
                 colors: Some(
                     dist.iter()
                         .map(|&d| error_color(d, self.params.color_max_mm))
@@ -334,6 +371,12 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
                 "ground-truth surface, world frame",
             ),
             PortSpec::optional("model", PortType::Model, "surfel model, world frame"),
+            PortSpec::optional(
+                "pose",
+                PortType::Pose,
+                "the estimate's world_from_camera: with `pose_gt`, scoring is in the camera frame",
+            ),
+            PortSpec::optional("pose_gt", PortType::Pose, "the true world_from_camera"),
             PortSpec::optional("points", PortType::PointCloud, "point cloud, world frame"),
             PortSpec::optional(
                 "mesh",

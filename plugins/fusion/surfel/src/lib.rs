@@ -1,0 +1,633 @@
+//! `fusion.surfel`: the template-free model of MIS-SLAM (method.md 5.1). The model is a set of
+//! surfels (position, normal, colour, confidence weight, last-seen frame, stability) kept in a
+//! canonical frame and bound to an embedded deformation graph whose warp maps them to the live
+//! tissue. Per frame:
+//!
+//! 1. lift the depth to vertex and normal maps;
+//! 2. select the visible surfels V^n (they project onto valid depth within `visible_distance_mm`
+//!    and `visible_angle_deg`) and solve the ED warp on them (batch, or decoupled PR / PI), with
+//!    the tracker's pose as prior; unseen surfels follow as rigidly as the graph allows;
+//! 3. fuse every `stride`-th depth pixel into the surfel it meets within `fuse_distance_mm` /
+//!    `fuse_angle_deg` (confidence-weighted average, weight capped at `max_weight`; colour from
+//!    the most frontal observation, so the texture stays vivid), or add a new surfel;
+//! 4. remove unstable surfels (weight below `stable_weight` and unseen for `unstable_frames`);
+//! 5. grow the graph where surfels lie farther than the node spacing from every node.
+//!
+//! Outputs the live model (world frame), the graph, the refined pose and the frame's figures.
+#![deny(missing_docs)]
+
+use misslam_deformation_ed::decoupled::{DecoupledParams, DecoupledSolver};
+use misslam_deformation_ed::graph::{Binding, EdGraph, GraphParams};
+use misslam_deformation_ed::observe::{scan_from_depth_into, visible_points};
+use misslam_deformation_ed::problem::{Intrinsics, ModelPoints, Problem, Scan, SolverParams};
+use misslam_deformation_ed::solver::{SolveSet, Solver};
+use misslam_framework::nalgebra::{Isometry3, Matrix3, Point3, Vector3};
+use misslam_framework::{
+    BuildContext, BuildError, DeformationGraph, DepthMap, Flow, FrameInfo, Image, Inputs, Metrics,
+    Node, NodeContext, NodeError, NodeResult, Outputs, PortSpec, PortType, Pose, Registry,
+    StereoFrame, SurfelModel, TrackingState, TypedPlugin,
+};
+
+/// Which ED solver runs.
+#[derive(
+    Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, schemars::JsonSchema,
+)]
+#[serde(rename_all = "snake_case")]
+pub enum SolverKind {
+    /// All nodes at once.
+    Batch,
+    /// PR then PI (the thesis's two-step solver).
+    Decoupled,
+}
+
+/// Parameters of `fusion.surfel`.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// Deformation graph: spacing (mm), neighbours, sampling.
+    pub graph: GraphParams,
+    /// Energy weights and solver options.
+    pub solver: SolverParams,
+    /// Batch or decoupled.
+    pub solver_kind: SolverKind,
+    /// The decoupled split (with `solver_kind = "decoupled"`).
+    pub decoupled: DecoupledParams,
+    /// Fuse and add one depth pixel per `stride` x `stride`.
+    pub stride: u32,
+    /// Depth step (mm) to a neighbour above which a pixel gets no normal.
+    pub normal_max_step_mm: f32,
+    /// epsilon_dv: a surfel is visible when the depth it projects onto is this close, mm.
+    pub visible_distance_mm: f64,
+    /// epsilon_nv: and its normal within this angle, degrees.
+    pub visible_angle_deg: f64,
+    /// epsilon_df: a depth pixel fuses into a surfel this close, mm.
+    pub fuse_distance_mm: f64,
+    /// epsilon_nf: with normals within this angle, degrees.
+    pub fuse_angle_deg: f64,
+    /// omega_max: the confidence weight stops growing here.
+    pub max_weight: f32,
+    /// A surfel below this weight ...
+    pub stable_weight: f32,
+    /// ... unseen for this many frames is removed.
+    pub unstable_frames: u64,
+    /// Most surfels kept; beyond it no new ones are added (logged).
+    pub max_surfels: usize,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params {
+            graph: GraphParams::default(),
+            solver: SolverParams::default(),
+            solver_kind: SolverKind::Decoupled,
+            decoupled: DecoupledParams::default(),
+            stride: 4,
+            normal_max_step_mm: 3.0,
+            visible_distance_mm: 5.0,
+            visible_angle_deg: 60.0,
+            fuse_distance_mm: 2.0,
+            fuse_angle_deg: 30.0,
+            max_weight: 20.0,
+            stable_weight: 3.0,
+            unstable_frames: 10,
+            max_surfels: 400_000,
+        }
+    }
+}
+
+fn param_err(path: &str, message: String) -> BuildError {
+    BuildError::Param {
+        key: Some(path.split('.').next().unwrap_or(path).to_owned()),
+        path: path.to_owned(),
+        message,
+    }
+}
+
+impl Params {
+    fn check(&self) -> Result<(), BuildError> {
+        self.graph.validate().map_err(|m| param_err("graph", m))?;
+        self.solver.validate().map_err(|m| param_err("solver", m))?;
+        if self.stride == 0 {
+            return Err(param_err("stride", "must be at least 1".into()));
+        }
+        for (name, v) in [
+            ("normal_max_step_mm", self.normal_max_step_mm as f64),
+            ("visible_distance_mm", self.visible_distance_mm),
+            ("fuse_distance_mm", self.fuse_distance_mm),
+            ("max_weight", self.max_weight as f64),
+        ] {
+            if v.is_nan() || v <= 0.0 {
+                return Err(param_err(name, format!("must be positive, got {v}")));
+            }
+        }
+        for (name, v) in [
+            ("visible_angle_deg", self.visible_angle_deg),
+            ("fuse_angle_deg", self.fuse_angle_deg),
+        ] {
+            if !(v > 0.0 && v <= 180.0) {
+                return Err(param_err(name, format!("must lie in (0, 180], got {v}")));
+            }
+        }
+        if self.max_surfels == 0 {
+            return Err(param_err("max_surfels", "must be at least 1".into()));
+        }
+        Ok(())
+    }
+}
+
+/// The canonical model and its graph.
+#[derive(Default)]
+struct Model {
+    canon: Vec<Vector3<f64>>,
+    normals: Vec<Vector3<f64>>,
+    colors: Vec<[u8; 3]>,
+    /// Cosine between normal and view ray of the observation the colour came from.
+    color_quality: Vec<f32>,
+    weights: Vec<f32>,
+    seen: Vec<u64>,
+    stability: Vec<f32>,
+    bindings: Vec<Binding>,
+}
+
+impl Model {
+    fn len(&self) -> usize {
+        self.canon.len()
+    }
+
+    fn push(
+        &mut self,
+        c: Vector3<f64>,
+        n: Vector3<f64>,
+        color: [u8; 3],
+        q: f32,
+        frame: u64,
+        b: Binding,
+    ) {
+        self.canon.push(c);
+        self.normals.push(n);
+        self.colors.push(color);
+        self.color_quality.push(q);
+        self.weights.push(1.0);
+        self.seen.push(frame);
+        self.stability.push(0.0);
+        self.bindings.push(b);
+    }
+
+    fn retain(&mut self, keep: &[bool]) {
+        fn filter<T: Copy>(v: &mut Vec<T>, keep: &[bool]) {
+            let mut i = 0;
+            v.retain(|_| {
+                i += 1;
+                keep[i - 1]
+            });
+        }
+        filter(&mut self.canon, keep);
+        filter(&mut self.normals, keep);
+        filter(&mut self.colors, keep);
+        filter(&mut self.color_quality, keep);
+        filter(&mut self.weights, keep);
+        filter(&mut self.seen, keep);
+        filter(&mut self.stability, keep);
+        filter(&mut self.bindings, keep);
+    }
+}
+
+enum Engine {
+    Batch(Box<Solver>),
+    Decoupled(Box<DecoupledSolver>),
+}
+
+/// The node.
+pub struct SurfelNode {
+    p: Params,
+    engine: Engine,
+    model: Model,
+    graph: Option<EdGraph>,
+    vertices: Vec<[f32; 3]>,
+    scan_normals: Vec<[f32; 3]>,
+}
+
+fn color_at(img: Option<&Image>, i: usize) -> [u8; 3] {
+    match img {
+        Some(im) if im.channels == 3 && (i + 1) * 3 <= im.data.len() => {
+            [im.data[3 * i], im.data[3 * i + 1], im.data[3 * i + 2]]
+        }
+        Some(im) if im.channels == 1 && i < im.data.len() => [im.data[i]; 3],
+        _ => [200, 120, 110],
+    }
+}
+
+fn v3(p: [f32; 3]) -> Vector3<f64> {
+    Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64)
+}
+
+fn f3(v: &Vector3<f64>) -> [f32; 3] {
+    [v.x as f32, v.y as f32, v.z as f32]
+}
+
+/// The warp's local linear part at a binding, as the pair (A^-1, A^T) derived from the blended
+/// normal matrices A^-T: A^-1 maps a live displacement back to the canonical frame, A^T maps a
+/// live normal back.
+fn local_inverses(b: &Binding, nm: &[Matrix3<f64>]) -> (Matrix3<f64>, Matrix3<f64>) {
+    if b.len == 0 {
+        return (Matrix3::identity(), Matrix3::identity());
+    }
+    let mut m = Matrix3::zeros();
+    for (j, w) in b.iter() {
+        m += w * nm[j as usize];
+    }
+    (
+        m.transpose(),
+        m.try_inverse().unwrap_or_else(Matrix3::identity),
+    )
+}
+
+impl SurfelNode {
+    fn frame(
+        &mut self,
+        frame: FrameInfo,
+        depth: &DepthMap,
+        left: Option<&Image>,
+        prior: Option<&Pose>,
+        outputs: &mut Outputs,
+    ) -> NodeResult<Flow> {
+        let (w, h) = (depth.map.width as usize, depth.map.height as usize);
+        if depth.map.data.len() != w * h {
+            return Err(NodeError::msg(format!(
+                "depth map of frame {} has {} values for {w}x{h} pixels",
+                frame.index,
+                depth.map.data.len()
+            )));
+        }
+        let left = left.filter(|im| im.width as usize == w && im.height as usize == h);
+        let k = Intrinsics {
+            fx: depth.calib.fx,
+            fy: depth.calib.fy,
+            cx: depth.calib.cx,
+            cy: depth.calib.cy,
+            width: w as u32,
+            height: h as u32,
+        };
+        scan_from_depth_into(
+            &depth.map.data,
+            &k,
+            self.p.normal_max_step_mm,
+            &mut self.vertices,
+            &mut self.scan_normals,
+        );
+        let mut pose = prior.map_or(Isometry3::identity(), |p| p.world_from_camera);
+        let lost = prior.is_some_and(|p| p.state == TrackingState::Lost);
+        let stride = self.p.stride as usize;
+        let mut metrics = Metrics::default();
+        let (mut fused, mut added, mut removed) = (0usize, 0usize, 0usize);
+
+        if self.graph.is_none() {
+            // The first frame: the model is the depth itself.
+            let mut pts = Vec::new();
+            for y in (0..h).step_by(stride) {
+                for x in (0..w).step_by(stride) {
+                    let i = y * w + x;
+                    let (v, n) = (self.vertices[i], self.scan_normals[i]);
+                    if v.iter().chain(&n).all(|c| c.is_finite()) {
+                        let c = (pose * Point3::from(v3(v))).coords;
+                        let q = (-n[2]).max(0.0);
+                        pts.push((c, pose.rotation * v3(n), color_at(left, i), q));
+                    }
+                }
+            }
+            if pts.is_empty() {
+                return Err(NodeError::msg(format!(
+                    "frame {}: no valid depth with a normal to start the model from",
+                    frame.index
+                )));
+            }
+            let canon: Vec<Vector3<f64>> = pts.iter().map(|p| p.0).collect();
+            let graph =
+                EdGraph::from_points(&canon, self.p.graph.clone()).map_err(NodeError::msg)?;
+            for (c, n, col, q) in pts {
+                let b = graph.bind(&c);
+                self.model.push(c, n, col, q, frame.index, b);
+            }
+            added = self.model.len();
+            self.graph = Some(graph);
+        } else if lost {
+            tracing::warn!(
+                frame = frame.index,
+                "tracking lost: the model is neither deformed nor fused on this frame"
+            );
+        } else {
+            let Some(graph) = self.graph.as_mut() else {
+                return Err(NodeError::msg("no graph"));
+            };
+            let m = &mut self.model;
+            // 2. Visible surfels and the warp.
+            let visible = visible_points(
+                graph,
+                &m.canon,
+                &m.normals,
+                &m.bindings,
+                &pose,
+                &k,
+                &self.vertices,
+                &self.scan_normals,
+                self.p.visible_distance_mm,
+                self.p.visible_angle_deg,
+            );
+            let lp: Vec<Vector3<f64>> = visible.iter().map(|&i| m.canon[i as usize]).collect();
+            let ln: Vec<Vector3<f64>> = visible.iter().map(|&i| m.normals[i as usize]).collect();
+            let lb: Vec<Binding> = visible.iter().map(|&i| m.bindings[i as usize]).collect();
+            let problem = Problem {
+                model: ModelPoints {
+                    points: &lp,
+                    normals: &ln,
+                    bindings: &lb,
+                },
+                scan: Some(Scan {
+                    intrinsics: k,
+                    vertices: &self.vertices,
+                    normals: &self.scan_normals,
+                }),
+                field: None,
+                correspondences: &[],
+                pose_prior: pose,
+            };
+            let info = match &mut self.engine {
+                Engine::Batch(s) => {
+                    let set = SolveSet::all(graph, self.p.solver.optimize_pose);
+                    s.solve(graph, &mut pose, &problem, &set, &self.p.solver)
+                        .map_err(NodeError::msg)?
+                }
+                Engine::Decoupled(s) => s
+                    .solve(
+                        graph,
+                        &mut pose,
+                        &problem,
+                        &self.p.solver,
+                        &self.p.decoupled,
+                    )
+                    .map_err(NodeError::msg)?
+                    .combined(),
+            };
+            if graph.warp.iter().flatten().any(|x| !x.is_finite()) {
+                graph.reset();
+                return Err(NodeError::msg(format!(
+                    "the deformation solve of frame {} diverged; the warp was reset",
+                    frame.index
+                )));
+            }
+            metrics
+                .values
+                .insert("fusion.visible".into(), visible.len() as f64);
+            metrics
+                .values
+                .insert("fusion.solve_ms".into(), info.ms_total);
+            metrics
+                .values
+                .insert("fusion.iterations".into(), info.iterations as f64);
+
+            // 3. Fusion into the live model, through an index map at stride resolution.
+            let (mut live, mut live_n) = (Vec::new(), Vec::new());
+            graph.deform(
+                &m.canon,
+                Some(&m.normals),
+                &m.bindings,
+                &mut live,
+                &mut live_n,
+            );
+            let nm = graph.normal_matrices();
+            let cfw = pose.inverse();
+            let (gw, gh) = (w.div_ceil(stride), h.div_ceil(stride));
+            let mut cell: Vec<(f32, u32)> = vec![(f32::INFINITY, u32::MAX); gw * gh];
+            for (s, p) in live.iter().enumerate() {
+                let pc = cfw * Point3::from(*p);
+                if pc.z <= 0.0 {
+                    continue;
+                }
+                let u = (k.fx * pc.x / pc.z + k.cx).round();
+                let v = (k.fy * pc.y / pc.z + k.cy).round();
+                if u < 0.0 || v < 0.0 || u >= w as f64 || v >= h as f64 {
+                    continue;
+                }
+                let c = (v as usize / stride) * gw + u as usize / stride;
+                if (pc.z as f32) < cell[c].0 {
+                    cell[c] = (pc.z as f32, s as u32);
+                }
+            }
+            let cos_f = self.p.fuse_angle_deg.to_radians().cos();
+            let mut new_points = Vec::new();
+            for gy in 0..gh {
+                for gx in 0..gw {
+                    let (x, y) = (gx * stride, gy * stride);
+                    let i = y * w + x;
+                    let (v, n) = (self.vertices[i], self.scan_normals[i]);
+                    if !v.iter().chain(&n).all(|c| c.is_finite()) {
+                        continue;
+                    }
+                    let wp = (pose * Point3::from(v3(v))).coords;
+                    let wn = pose.rotation * v3(n);
+                    let quality = (-n[2]).max(0.0);
+                    let color = color_at(left, i);
+                    let (_, s) = cell[gy * gw + gx];
+                    if s != u32::MAX {
+                        let s = s as usize;
+                        let d = wp - live[s];
+                        if d.norm() <= self.p.fuse_distance_mm && wn.dot(&live_n[s]) >= cos_f {
+                            let (a_inv, a_t) = local_inverses(&m.bindings[s], &nm);
+                            let wgt = m.weights[s];
+                            let alpha = 1.0 / (wgt as f64 + 1.0);
+                            m.canon[s] += a_inv * d * alpha;
+                            let cn = m.normals[s] * (1.0 - alpha) + a_t * wn * alpha;
+                            m.normals[s] = cn.try_normalize(1e-12).unwrap_or(m.normals[s]);
+                            if quality >= m.color_quality[s] {
+                                m.colors[s] = color;
+                                m.color_quality[s] = quality;
+                            }
+                            m.weights[s] = (wgt + 1.0).min(self.p.max_weight);
+                            m.seen[s] = frame.index;
+                            m.stability[s] += 1.0;
+                            fused += 1;
+                            continue;
+                        }
+                        if d.norm() <= self.p.fuse_distance_mm {
+                            // Close but turned away: neither fused nor a duplicate.
+                            continue;
+                        }
+                    }
+                    new_points.push((wp, wn, color, quality));
+                }
+            }
+            // New surfels: canonical position by inverting the warp (fixed point iteration).
+            let room = self.p.max_surfels.saturating_sub(m.len());
+            if new_points.len() > room {
+                tracing::warn!(
+                    frame = frame.index,
+                    "surfel cap {} reached: {} new surfels dropped",
+                    self.p.max_surfels,
+                    new_points.len() - room
+                );
+                new_points.truncate(room);
+            }
+            let mut grown = Vec::with_capacity(new_points.len());
+            for (wp, wn, color, q) in new_points {
+                let mut c = wp;
+                for _ in 0..3 {
+                    let b = graph.bind(&c);
+                    c += wp - graph.warp_point(&c, &b);
+                }
+                let b = graph.bind(&c);
+                let (_, a_t) = local_inverses(&b, &nm);
+                let cn = (a_t * wn).try_normalize(1e-12).unwrap_or(wn);
+                m.push(c, cn, color, q, frame.index, b);
+                grown.push(c);
+                added += 1;
+            }
+            // 4. Unstable surfels.
+            let keep: Vec<bool> = (0..m.len())
+                .map(|s| {
+                    m.weights[s] >= self.p.stable_weight
+                        || frame.index.saturating_sub(m.seen[s]) <= self.p.unstable_frames
+                })
+                .collect();
+            removed = keep.iter().filter(|&&b| !b).count();
+            if removed > 0 {
+                m.retain(&keep);
+            }
+            // 5. Graph growth, then every binding again (new nodes change the neighbourhoods).
+            if graph.grow(&grown) > 0 {
+                m.bindings = graph.bind_all(&m.canon);
+            }
+        }
+
+        let Some(graph) = self.graph.as_ref() else {
+            return Err(NodeError::msg("no graph"));
+        };
+        let m = &self.model;
+        let (mut live, mut live_n) = (Vec::new(), Vec::new());
+        graph.deform(
+            &m.canon,
+            Some(&m.normals),
+            &m.bindings,
+            &mut live,
+            &mut live_n,
+        );
+        for (key, v) in [
+            ("fusion.surfels", m.len() as f64),
+            ("fusion.nodes", graph.len() as f64),
+            ("fusion.fused", fused as f64),
+            ("fusion.added", added as f64),
+            ("fusion.removed", removed as f64),
+        ] {
+            metrics.values.insert(key.into(), v);
+        }
+        outputs.put(
+            "model",
+            SurfelModel {
+                positions: live.iter().map(f3).collect(),
+                normals: live_n.iter().map(f3).collect(),
+                colors: m.colors.clone(),
+                weights: m.weights.clone(),
+                timestamps: m.seen.clone(),
+                stability: m.stability.clone(),
+            },
+        )?;
+        outputs.put(
+            "graph",
+            DeformationGraph {
+                nodes: graph.nodes().iter().map(f3).collect(),
+                affines: graph
+                    .warp
+                    .iter()
+                    .map(|p| {
+                        [p[0], p[1], p[2], p[4], p[5], p[6], p[8], p[9], p[10]].map(|x| x as f32)
+                    })
+                    .collect(),
+                translations: graph
+                    .warp
+                    .iter()
+                    .map(|p| [p[3] as f32, p[7] as f32, p[11] as f32])
+                    .collect(),
+                edges: graph.edges().map(|(a, b)| [a, b]).collect(),
+            },
+        )?;
+        outputs.put(
+            "pose",
+            Pose {
+                world_from_camera: pose,
+                state: prior.map_or(TrackingState::Tracking, |p| p.state),
+            },
+        )?;
+        outputs.put("info", metrics)?;
+        Ok(Flow::Continue)
+    }
+}
+
+impl Node for SurfelNode {
+    fn finish(&mut self, ctx: &mut NodeContext) -> NodeResult<()> {
+        // The final model's size, for metrics.json (bounded-memory checks and ablations).
+        ctx.report_eval("fusion.surfels", self.model.len() as f64);
+        ctx.report_eval(
+            "fusion.nodes",
+            self.graph.as_ref().map_or(0, |g| g.len()) as f64,
+        );
+        Ok(())
+    }
+
+    fn process(
+        &mut self,
+        _: &mut NodeContext,
+        frame: FrameInfo,
+        inputs: &Inputs,
+        outputs: &mut Outputs,
+    ) -> NodeResult<Flow> {
+        let depth = inputs.get::<DepthMap>("depth")?;
+        let pair = inputs.opt::<StereoFrame>("stereo")?;
+        let prior = inputs.opt::<Pose>("pose")?;
+        let left = pair.map(|p| p.left.as_ref());
+        self.frame(frame, depth, left, prior.map(|p| p.as_ref()), outputs)
+    }
+}
+
+/// Builds the node.
+pub fn build(p: Params, _: &BuildContext) -> Result<SurfelNode, BuildError> {
+    p.check()?;
+    let engine = match p.solver_kind {
+        SolverKind::Batch => Engine::Batch(Box::default()),
+        SolverKind::Decoupled => Engine::Decoupled(Box::default()),
+    };
+    Ok(SurfelNode {
+        p,
+        engine,
+        model: Model::default(),
+        graph: None,
+        vertices: Vec::new(),
+        scan_normals: Vec::new(),
+    })
+}
+
+/// Registers `fusion.surfel`.
+pub fn register(registry: &mut Registry) -> Result<(), String> {
+    registry.register(TypedPlugin::new(
+        "fusion.surfel",
+        "template-free surfel fusion with an ED warp (MIS-SLAM): visible selection, ED solve, weighted fusion, growth",
+        vec![
+            PortSpec::new("depth", PortType::Depth, "the live depth (postprocessed), mm"),
+            PortSpec::optional("stereo", PortType::Stereo, "the pair (the left image colours the surfels)"),
+            PortSpec::optional(
+                "pose",
+                PortType::Pose,
+                "world_from_camera from the tracker (prior); a lost frame is not fused",
+            ),
+        ],
+        vec![
+            PortSpec::new("model", PortType::Model, "the live surfel model, world frame"),
+            PortSpec::new("graph", PortType::DeformationGraph, "nodes, warps, edges"),
+            PortSpec::new("pose", PortType::Pose, "the pose after the solve"),
+            PortSpec::new(
+                "info",
+                PortType::Metrics,
+                "fusion.surfels, nodes, fused, added, removed, visible, solve_ms, iterations",
+            ),
+        ],
+        build,
+    ))
+}
