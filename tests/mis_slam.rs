@@ -8,6 +8,11 @@ fn run(sets: &[&str], name: &str) -> std::collections::BTreeMap<String, f64> {
     let out = common::tmp_dir(name);
     let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
     let report = common::run_graph_file("graphs/mis_slam.toml", &sets, &out);
+    // The coloured model is exported at the end, as PLY and glb.
+    let ply = std::fs::read(out.join("export/model/final.ply")).expect("final.ply written");
+    let header = String::from_utf8_lossy(&ply[..ply.len().min(400)]).to_string();
+    assert!(header.contains("property uchar red"), "{header}");
+    assert!(out.join("export/model/final.glb").is_file());
     report.metrics.eval
 }
 

@@ -9,7 +9,8 @@
 //!    the tracker's pose as prior; unseen surfels follow as rigidly as the graph allows;
 //! 3. fuse every `stride`-th depth pixel into the surfel it meets within `fuse_distance_mm` /
 //!    `fuse_angle_deg` (confidence-weighted average, weight capped at `max_weight`; colour from
-//!    the most frontal observation, so the texture stays vivid), or add a new surfel;
+//!    the most frontal and saturated observation, so the texture stays vivid and specular
+//!    highlights do not bake in), or add a new surfel;
 //! 4. remove unstable surfels (weight below `stable_weight` and unseen for `unstable_frames`);
 //! 5. grow the graph where surfels lie farther than the node spacing from every node.
 //!
@@ -141,7 +142,7 @@ struct Model {
     canon: Vec<Vector3<f64>>,
     normals: Vec<Vector3<f64>>,
     colors: Vec<[u8; 3]>,
-    /// Cosine between normal and view ray of the observation the colour came from.
+    /// [`color_quality`] of the observation the colour came from.
     color_quality: Vec<f32>,
     weights: Vec<f32>,
     seen: Vec<u64>,
@@ -217,6 +218,17 @@ fn color_at(img: Option<&Image>, i: usize) -> [u8; 3] {
     }
 }
 
+/// How much an observation's colour is trusted: the surface faces the scope (cosine of the view
+/// angle, the normal being in the camera frame) and the colour is saturated. Specular
+/// highlights, which a scope-mounted light puts exactly on the frontal views, are pale and lose
+/// to a vivid observation from another angle.
+fn color_quality(normal_cam: [f32; 3], c: [u8; 3]) -> f32 {
+    let hi = c.iter().copied().max().unwrap_or(0) as f32;
+    let lo = c.iter().copied().min().unwrap_or(0) as f32;
+    let saturation = if hi > 0.0 { (hi - lo) / hi } else { 0.0 };
+    (-normal_cam[2]).max(0.0) * saturation
+}
+
 fn v3(p: [f32; 3]) -> Vector3<f64> {
     Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64)
 }
@@ -290,8 +302,8 @@ impl SurfelNode {
                     let (v, n) = (self.vertices[i], self.scan_normals[i]);
                     if v.iter().chain(&n).all(|c| c.is_finite()) {
                         let c = (pose * Point3::from(v3(v))).coords;
-                        let q = (-n[2]).max(0.0);
-                        pts.push((c, pose.rotation * v3(n), color_at(left, i), q));
+                        let col = color_at(left, i);
+                        pts.push((c, pose.rotation * v3(n), col, color_quality(n, col)));
                     }
                 }
             }
@@ -425,8 +437,8 @@ impl SurfelNode {
                     }
                     let wp = (pose * Point3::from(v3(v))).coords;
                     let wn = pose.rotation * v3(n);
-                    let quality = (-n[2]).max(0.0);
                     let color = color_at(left, i);
+                    let quality = color_quality(n, color);
                     let (_, s) = cell[gy * gw + gx];
                     if s != u32::MAX {
                         let s = s as usize;
@@ -630,4 +642,38 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
         ],
         build,
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_vivid_oblique_colour_beats_a_frontal_highlight() {
+        let frontal = [0.0, 0.0, -1.0];
+        let oblique = [0.0, 0.5, -0.866];
+        let highlight = [250, 235, 230];
+        let tissue = [180, 70, 60];
+        assert!(color_quality(oblique, tissue) > color_quality(frontal, highlight));
+        // Facing away: no trust at all.
+        assert_eq!(color_quality([0.0, 0.0, 1.0], tissue), 0.0);
+        // Among equally vivid colours, the frontal one wins.
+        assert!(color_quality(frontal, tissue) > color_quality(oblique, tissue));
+    }
+
+    #[test]
+    fn local_inverses_undo_an_affine_warp() {
+        // One node with A = diag(2, 1, 0.5) plus a rotation: A^-1 and A^T from its normal matrix.
+        let a = Matrix3::new(0.0, -1.0, 0.0, 2.0, 0.0, 0.0, 0.0, 0.0, 0.5);
+        let nm = vec![a.try_inverse().unwrap().transpose()];
+        let mut b = Binding {
+            nodes: [0; misslam_deformation_ed::graph::MAX_K],
+            weights: [0.0; misslam_deformation_ed::graph::MAX_K],
+            len: 1,
+        };
+        b.weights[0] = 1.0;
+        let (a_inv, a_t) = local_inverses(&b, &nm);
+        assert!((a_inv * a - Matrix3::identity()).norm() < 1e-12);
+        assert!((a_t - a.transpose()).norm() < 1e-12);
+    }
 }
