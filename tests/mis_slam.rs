@@ -71,3 +71,31 @@ fn fusion_on_a_static_scene_merges_instead_of_duplicating() {
     assert!(n <= first * 1.02, "{first} -> {n}");
     assert!(mean < 0.05, "{mean}");
 }
+
+#[test]
+fn mis_slam_runs_over_the_real_hamlyn_frames_without_failing() {
+    // Real in-vivo frames 3 s apart: tracking is mostly lost (reported, never fused), and nothing
+    // may crash, skip or produce a non-finite model.
+    let Some(_) = common::data_set("hamlyn20") else {
+        return;
+    };
+    let out = common::tmp_dir("mis_slam_hamlyn");
+    let report = common::run_graph_file("graphs/mis_slam_hamlyn.toml", &[], &out);
+    assert_eq!(report.metrics.frames.processed, 17);
+    assert_eq!(report.metrics.frames.skipped, 0);
+    let e = &report.metrics.eval;
+    assert!(e["fusion.surfels"] > 1000.0, "{e:?}");
+    let ply = std::fs::read(out.join("export/model/final.ply")).expect("final.ply written");
+    let start = ply
+        .windows(11)
+        .position(|w| w == b"end_header\n")
+        .expect("a PLY header")
+        + 11;
+    // x, y, z, nx, ny, nz as f32 then r, g, b: 27 bytes per vertex; every coordinate finite.
+    for v in ply[start..].chunks_exact(27) {
+        for k in 0..6 {
+            let f = f32::from_le_bytes(v[4 * k..4 * k + 4].try_into().unwrap());
+            assert!(f.is_finite());
+        }
+    }
+}
