@@ -9,13 +9,13 @@
 //! | `tracking.rpe_deg` | the same for rotation, degrees |
 //! | `tracking.lost_pct` | % of frames the tracker reported lost (excluded from the errors above) |
 //!
-//! (`tracking.point_err_mm`, for tracked surface points, comes from the tracker's correspondences.)
+//! | `tracking.point_err_mm` | with the tracker's `matches` and the GT depth connected: mean distance, over frames, between each tracked point's 3D position (camera frame) and the GT surface point at its keypoint (GT depth, bilinear, back-projected) |
 #![deny(missing_docs)]
 
 use misslam_framework::nalgebra::{Isometry3, Vector3};
 use misslam_framework::{
-    BuildContext, Flow, FrameInfo, Inputs, Metrics, Node, NodeContext, NodeResult, Outputs,
-    PortSpec, PortType, Pose, Registry, TrackingState, TypedPlugin,
+    BuildContext, DepthMap, Flow, FrameInfo, Inputs, Matches, Metrics, Node, NodeContext,
+    NodeError, NodeResult, Outputs, PortSpec, PortType, Pose, Registry, TrackingState, TypedPlugin,
 };
 
 /// How the estimate is aligned before the ATE.
@@ -130,11 +130,45 @@ fn nalgebra_point(v: &Vector3<f64>) -> misslam_framework::nalgebra::Point3<f64> 
     misslam_framework::nalgebra::Point3::from(*v)
 }
 
+/// Mean distance (mm) between tracked points (camera frame, at pixel `xy`) and the GT surface
+/// seen at the same pixels (GT depth, bilinear where all four neighbours are valid, lifted with
+/// the calibration); `None` when no point has GT.
+pub fn point_error(xy: &[[f32; 2]], points: &[[f32; 3]], depth_gt: &DepthMap) -> Option<f64> {
+    let (w, h) = (depth_gt.map.width as usize, depth_gt.map.height as usize);
+    let c = &depth_gt.calib;
+    let (mut sum, mut n) = (0.0, 0usize);
+    for (q, p) in xy.iter().zip(points) {
+        if !p.iter().all(|v| v.is_finite()) {
+            continue;
+        }
+        let (x, y) = (q[0] as f64, q[1] as f64);
+        if !(x >= 0.0 && y >= 0.0) {
+            continue;
+        }
+        let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+        if x0 + 1 >= w || y0 + 1 >= h {
+            continue;
+        }
+        let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+        let d = |xx: usize, yy: usize| depth_gt.map.data[yy * w + xx] as f64;
+        let z = (1.0 - fy) * ((1.0 - fx) * d(x0, y0) + fx * d(x0 + 1, y0))
+            + fy * ((1.0 - fx) * d(x0, y0 + 1) + fx * d(x0 + 1, y0 + 1));
+        if !z.is_finite() {
+            continue;
+        }
+        let g = Vector3::new((x - c.cx) * z / c.fx, (y - c.cy) * z / c.fy, z);
+        sum += (Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64) - g).norm();
+        n += 1;
+    }
+    (n > 0).then(|| sum / n as f64)
+}
+
 /// The node.
 pub struct EvalTracking {
     params: Params,
     est: Vec<Option<Isometry3<f64>>>,
     gt: Vec<Isometry3<f64>>,
+    point_errors: Vec<f64>,
 }
 
 impl Node for EvalTracking {
@@ -171,6 +205,29 @@ impl Node for EvalTracking {
         };
         m.values
             .insert(format!("{}.position_err_mm", self.params.prefix), raw);
+        match (
+            inputs.opt::<Matches>("matches")?,
+            inputs.opt::<DepthMap>("depth_gt")?,
+        ) {
+            (Some(mt), Some(d)) if mt.query_points.len() == mt.query_xy.len() => {
+                if let Some(e) = point_error(&mt.query_xy, &mt.query_points, d) {
+                    self.point_errors.push(e);
+                    m.values
+                        .insert(format!("{}.point_err_mm", self.params.prefix), e);
+                }
+            }
+            (Some(_), Some(_)) => {
+                return Err(NodeError::msg(
+                    "`matches` carry no 3D query points (connect a tracker's matches)",
+                ))
+            }
+            (Some(_), None) | (None, Some(_)) => {
+                return Err(NodeError::msg(
+                    "connect both `matches` and `depth_gt` for tracking.point_err_mm, or neither",
+                ))
+            }
+            (None, None) => {}
+        }
         outputs.put("metrics", m)?;
         Ok(Flow::Continue)
     }
@@ -191,6 +248,10 @@ impl Node for EvalTracking {
                 ctx.report_eval(&format!("{p}.{k}"), v);
             }
         }
+        if !self.point_errors.is_empty() {
+            let mean = self.point_errors.iter().sum::<f64>() / self.point_errors.len() as f64;
+            ctx.report_eval(&format!("{p}.point_err_mm"), mean);
+        }
         Ok(())
     }
 }
@@ -207,6 +268,16 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
                 "estimated world_from_camera with tracker state",
             ),
             PortSpec::new("pose_gt", PortType::Pose, "ground-truth world_from_camera"),
+            PortSpec::optional(
+                "matches",
+                PortType::Matches,
+                "the tracker's correspondences (query: current keypoint and camera-frame point)",
+            ),
+            PortSpec::optional(
+                "depth_gt",
+                PortType::Depth,
+                "GT depth, for tracking.point_err_mm",
+            ),
         ],
         vec![PortSpec::new(
             "metrics",
@@ -218,6 +289,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
                 params: p,
                 est: Vec::new(),
                 gt: Vec::new(),
+                point_errors: Vec::new(),
             })
         },
     ))
@@ -227,6 +299,45 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
 mod tests {
     use super::*;
     use misslam_framework::nalgebra::{Translation3, UnitQuaternion};
+    use misslam_framework::{FloatMap, StereoCalib};
+
+    #[test]
+    fn point_error_is_exact_on_a_constructed_plane() {
+        // GT: a fronto-parallel plane at 80 mm. Tracked points on it give 0; the same points
+        // pushed 0.5 mm along z give exactly 0.5; points off the map or without 3D are skipped.
+        let calib = StereoCalib {
+            width: 64,
+            height: 48,
+            fx: 100.0,
+            fy: 100.0,
+            cx: 32.0,
+            cy: 24.0,
+            cx_right: 32.0,
+            baseline_mm: 5.0,
+        };
+        let d = DepthMap {
+            map: FloatMap {
+                width: 64,
+                height: 48,
+                data: vec![80.0; 64 * 48],
+            },
+            calib,
+        };
+        let xy = [[10.25f32, 5.5], [40.0, 30.75], [100.0, 5.0], [3.0, 3.0]];
+        let lift = |q: [f32; 2], z: f32| [(q[0] - 32.0) * z / 100.0, (q[1] - 24.0) * z / 100.0, z];
+        let on = [
+            lift(xy[0], 80.0),
+            lift(xy[1], 80.0),
+            [0.0, 0.0, 80.0],
+            [f32::NAN; 3],
+        ];
+        assert!(point_error(&xy, &on, &d).unwrap() < 1e-4);
+        let mut off = on;
+        off[0][2] += 0.5;
+        off[1][2] += 0.5;
+        assert!((point_error(&xy, &off, &d).unwrap() - 0.5).abs() < 1e-4);
+        assert!(point_error(&xy[2..], &on[2..], &d).is_none());
+    }
 
     fn gt_trajectory(n: usize) -> Vec<Isometry3<f64>> {
         (0..n)
