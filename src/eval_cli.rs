@@ -104,3 +104,83 @@ pub fn summary(rows: &[FrameRow]) -> std::collections::BTreeMap<String, f64> {
     }
     means.means().map(|(k, v)| (k.to_owned(), v)).collect()
 }
+
+/// A trajectory file in TUM layout (`key tx ty tz qx qy qz qw`, `#` comments): the first column
+/// and the pose of every line, in file order.
+pub fn read_tum(
+    path: &Path,
+) -> Result<Vec<(f64, misslam_framework::nalgebra::Isometry3<f64>)>, String> {
+    use misslam_framework::nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
+    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let mut out = Vec::new();
+    for (n, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let v: Vec<f64> = line
+            .split_whitespace()
+            .map(|t| t.parse::<f64>())
+            .collect::<Result<_, _>>()
+            .map_err(|e| format!("{}:{}: {e}", path.display(), n + 1))?;
+        if v.len() != 8 || v.iter().any(|x| !x.is_finite()) {
+            return Err(format!(
+                "{}:{}: expected 8 finite numbers (key tx ty tz qx qy qz qw), got `{line}`",
+                path.display(),
+                n + 1
+            ));
+        }
+        let q = Quaternion::new(v[7], v[4], v[5], v[6]);
+        if (q.norm() - 1.0).abs() > 1e-3 {
+            return Err(format!(
+                "{}:{}: the quaternion has norm {}, not 1",
+                path.display(),
+                n + 1,
+                q.norm()
+            ));
+        }
+        out.push((
+            v[0],
+            Isometry3::from_parts(
+                Translation3::new(v[1], v[2], v[3]),
+                UnitQuaternion::from_quaternion(q),
+            ),
+        ));
+    }
+    Ok(out)
+}
+
+/// Scores an estimated trajectory (as `sink.files` writes it: the first column is the frame
+/// index, lost frames are comments) against a GT trajectory whose line k is frame k (as
+/// `misslam phantom export` writes `poses_gt.txt`).
+pub fn eval_tracking(
+    est: &Path,
+    gt: &Path,
+    align: misslam_eval_tracking::Align,
+) -> Result<misslam_eval_tracking::TrackingScores, String> {
+    let e = read_tum(est)?;
+    let g: Vec<_> = read_tum(gt)?.into_iter().map(|(_, p)| p).collect();
+    if g.is_empty() {
+        return Err(format!("{}: no poses", gt.display()));
+    }
+    let mut per_frame = vec![None; g.len()];
+    for (k, pose) in e {
+        if k < 0.0 || k.fract() != 0.0 {
+            return Err(format!(
+                "{}: the first column must be a frame index, got {k}",
+                est.display()
+            ));
+        }
+        let k = k as usize;
+        if k >= g.len() {
+            return Err(format!(
+                "{}: frame {k} is past the {} frames of {}",
+                est.display(),
+                g.len(),
+                gt.display()
+            ));
+        }
+        per_frame[k] = Some(pose);
+    }
+    Ok(misslam_eval_tracking::score(&per_frame, &g, align))
+}

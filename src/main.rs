@@ -79,6 +79,22 @@ enum Command {
 
 #[derive(Subcommand)]
 enum EvalCommand {
+    /// An estimated trajectory (`sink.files`' pose.txt) against a GT one (`poses_gt.txt` of
+    /// `misslam phantom export`): ATE, RPE, lost frames.
+    Tracking {
+        /// Estimated trajectory (first column: frame index; lost frames as comments).
+        #[arg(long)]
+        est: PathBuf,
+        /// GT trajectory, TUM layout, line k = frame k.
+        #[arg(long)]
+        gt: PathBuf,
+        /// Alignment before the ATE: rigid or none.
+        #[arg(long, default_value = "rigid")]
+        align: String,
+        /// Also write the scores as JSON here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// Depth maps (`<frame>.pfm`, mm, as sink.files writes them) against a dataset's GT depth.
     Depth {
         /// Folder of estimated depth, e.g. out/run/files/depth.
@@ -382,6 +398,40 @@ fn run(command: Command) -> anyhow::Result<()> {
             }
             if let Some(path) = out {
                 std::fs::write(&path, serde_json::to_string_pretty(&rows)?)
+                    .with_context(|| format!("writing {}", path.display()))?;
+            }
+            Ok(())
+        }
+        Command::Eval {
+            which:
+                EvalCommand::Tracking {
+                    est,
+                    gt,
+                    align,
+                    out,
+                },
+        } => {
+            let align = match align.as_str() {
+                "rigid" => misslam_eval_tracking::Align::Rigid,
+                "none" => misslam_eval_tracking::Align::None,
+                other => anyhow::bail!("--align `{other}`: expected rigid or none"),
+            };
+            let s =
+                misslam::eval_cli::eval_tracking(&est, &gt, align).map_err(anyhow::Error::msg)?;
+            println!("frames with a pose  {}", s.frames);
+            println!("tracking.ate_mm     {:.4}", s.ate_mm);
+            println!("tracking.rpe_mm     {:.4}", s.rpe_mm);
+            println!("tracking.rpe_deg    {:.4}", s.rpe_deg);
+            println!("tracking.lost_pct   {:.2}", s.lost_pct);
+            if let Some(path) = out {
+                let v = serde_json::json!({
+                    "frames": s.frames,
+                    "tracking.ate_mm": s.ate_mm,
+                    "tracking.rpe_mm": s.rpe_mm,
+                    "tracking.rpe_deg": s.rpe_deg,
+                    "tracking.lost_pct": s.lost_pct,
+                });
+                std::fs::write(&path, serde_json::to_string_pretty(&v)?)
                     .with_context(|| format!("writing {}", path.display()))?;
             }
             Ok(())

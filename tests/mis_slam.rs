@@ -85,6 +85,18 @@ fn mis_slam_runs_over_the_real_hamlyn_frames_without_failing() {
     assert_eq!(report.metrics.frames.skipped, 0);
     let e = &report.metrics.eval;
     assert!(e["fusion.surfels"] > 1000.0, "{e:?}");
+    // The trajectory: one line per frame, lost frames as comments (never a guessed pose).
+    let traj = std::fs::read_to_string(out.join("export/pose.txt")).expect("pose.txt written");
+    assert_eq!(traj.lines().count(), 17);
+    assert!(
+        traj.lines()
+            .any(|l| l.starts_with("# frame") && l.ends_with("lost")),
+        "{traj}"
+    );
+    assert!(
+        traj.lines().next().is_some_and(|l| l.starts_with("0 ")),
+        "{traj}"
+    );
     let ply = std::fs::read(out.join("export/model/final.ply")).expect("final.ply written");
     let start = ply
         .windows(11)

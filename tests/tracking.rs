@@ -71,3 +71,43 @@ fn swapping_the_feature_plugin_by_set_runs() {
     assert_eq!(report.metrics.frames.processed, 4);
     assert_eq!(report.metrics.eval["tracking.lost_pct"], 0.0);
 }
+
+#[test]
+fn eval_tracking_cli_agrees_with_the_eval_node() {
+    // The trajectory the graph writes, scored by `misslam eval tracking` against the GT of a
+    // phantom export of the same sequence, gives the node's ATE and RPE.
+    let out = common::tmp_dir("tracking_cli");
+    let sets = [
+        "graph.frames.count=12",
+        "src.heartbeat_mm=0",
+        "src.breathing_mm=0",
+    ]
+    .map(String::from);
+    let report = common::run_graph_file("graphs/tracking_orb.toml", &sets, &out);
+    let data = common::tmp_dir("tracking_cli_gt");
+    let params: misslam::framework::toml::Table = misslam::framework::toml::from_str(
+        "scene = \"heart\"\ntrajectory = \"sweep\"\nheartbeat_mm = 0.0\nbreathing_mm = 0.0\nframes = 12",
+    )
+    .unwrap();
+    misslam::phantom_export::export(&params, 7, &data).unwrap();
+    let s = misslam::eval_cli::eval_tracking(
+        &out.join("files/pose.txt"),
+        &data.join("poses_gt.txt"),
+        misslam_eval_tracking::Align::Rigid,
+    )
+    .unwrap();
+    let e = &report.metrics.eval;
+    assert_eq!(s.frames, 12);
+    assert!(
+        (s.ate_mm - e["tracking.ate_mm"]).abs() < 1e-4,
+        "{} vs {}",
+        s.ate_mm,
+        e["tracking.ate_mm"]
+    );
+    assert!((s.rpe_mm - e["tracking.rpe_mm"]).abs() < 1e-4);
+    // A malformed line is an error naming the file and line.
+    let bad = out.join("bad.txt");
+    std::fs::write(&bad, "0 1 2 3 0 0 0 1\n1 1 2 x 0 0 0 1\n").unwrap();
+    let err = misslam::eval_cli::read_tum(&bad).unwrap_err();
+    assert!(err.contains("bad.txt:2"), "{err}");
+}

@@ -159,6 +159,29 @@ impl Node for FilesSink {
                     pfm::write_pfm(&p, &d.map)
                         .map_err(|e| NodeError::msg(format!("{}: {e}", p.display())))?;
                 }
+                Payload::Pose(pose) => {
+                    // Every frame, as a TUM trajectory (`frame tx ty tz qx qy qz qw`); a lost
+                    // frame is a comment line, so readers skip it and nothing is guessed.
+                    ensure_dir(&root)?;
+                    let path = root.join(format!("{}.txt", spec.name));
+                    let mut f = std::fs::OpenOptions::new()
+                        .create(true)
+                        .append(true)
+                        .open(&path)
+                        .map_err(|e| NodeError::msg(format!("{}: {e}", path.display())))?;
+                    let iso = pose.world_from_camera;
+                    let (t, q) = (iso.translation.vector, iso.rotation);
+                    let line = if pose.state == misslam_framework::TrackingState::Lost {
+                        format!("# frame {} lost\n", frame.index)
+                    } else {
+                        format!(
+                            "{} {:.6} {:.6} {:.6} {:.9} {:.9} {:.9} {:.9}\n",
+                            frame.index, t.x, t.y, t.z, q.i, q.j, q.k, q.w
+                        )
+                    };
+                    std::io::Write::write_all(&mut f, line.as_bytes())
+                        .map_err(|e| NodeError::msg(format!("{}: {e}", path.display())))?;
+                }
                 Payload::PointCloud(_) | Payload::Model(_) | Payload::Mesh(_) => {
                     self.last_geometry[i] = Some(payload.clone());
                     if geom_due {
@@ -169,6 +192,19 @@ impl Node for FilesSink {
             }
         }
         Ok(Flow::Continue)
+    }
+
+    fn start(&mut self, ctx: &mut NodeContext) -> NodeResult<()> {
+        // Trajectories are appended frame by frame: start from an empty file.
+        let root = ctx.out_dir.join(&self.params.dir);
+        for spec in self.ports.iter().filter(|s| s.ty == PortType::Pose) {
+            let path = root.join(format!("{}.txt", spec.name));
+            if path.exists() {
+                std::fs::remove_file(&path)
+                    .map_err(|e| NodeError::msg(format!("{}: {e}", path.display())))?;
+            }
+        }
+        Ok(())
     }
 
     fn finish(&mut self, ctx: &mut NodeContext) -> NodeResult<()> {
@@ -214,6 +250,11 @@ fn ports() -> Vec<PortSpec> {
             "mesh",
             PortType::Mesh,
             "PLY/glb every `geometry_every` frames and at the end",
+        ),
+        PortSpec::optional(
+            "pose",
+            PortType::Pose,
+            "every frame into <dir>/pose.txt (TUM: frame tx ty tz qx qy qz qw; lost frames as comments)",
         ),
     ]
 }
