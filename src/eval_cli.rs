@@ -184,3 +184,25 @@ pub fn eval_tracking(
     }
     Ok(misslam_eval_tracking::score(&per_frame, &g, align))
 }
+
+/// Scores a saved reconstruction (its vertices: a surfel model, point cloud or mesh as PLY, OBJ
+/// or glTF) against a GT mesh file, as the `eval.recon` node does.
+pub fn eval_recon(est: &Path, gt: &Path) -> Result<misslam_eval_recon::ReconScores, String> {
+    use misslam_source_phantom::mesh_input::read_geometry;
+    // The readers name the file in their messages.
+    let e = read_geometry(est)?;
+    let g = read_geometry(gt)?;
+    if g.triangles.is_empty() {
+        return Err(format!(
+            "{}: the GT must be a mesh with triangles",
+            gt.display()
+        ));
+    }
+    let mesh = misslam_framework::Mesh {
+        vertices: g.vertices,
+        normals: None,
+        colors: None,
+        triangles: g.triangles,
+    };
+    misslam_eval_recon::score(&e.vertices, &mesh).map(|(s, _)| s)
+}

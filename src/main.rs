@@ -79,6 +79,16 @@ enum Command {
 
 #[derive(Subcommand)]
 enum EvalCommand {
+    /// A saved reconstruction (e.g. `export/model/final.ply`) against a GT mesh (e.g. a phantom
+    /// export's `mesh_gt/<frame>.ply`), both in the world frame: mean, RMS and p95 distance.
+    Recon {
+        /// The reconstruction (PLY, OBJ, glTF; its vertices are scored).
+        #[arg(long)]
+        est: PathBuf,
+        /// The GT surface (a triangle mesh).
+        #[arg(long)]
+        gt: PathBuf,
+    },
     /// An estimated trajectory (`sink.files`' pose.txt) against a GT one (`poses_gt.txt` of
     /// `misslam phantom export`): ATE, RPE, lost frames.
     Tracking {
@@ -400,6 +410,16 @@ fn run(command: Command) -> anyhow::Result<()> {
                 std::fs::write(&path, serde_json::to_string_pretty(&rows)?)
                     .with_context(|| format!("writing {}", path.display()))?;
             }
+            Ok(())
+        }
+        Command::Eval {
+            which: EvalCommand::Recon { est, gt },
+        } => {
+            let s = misslam::eval_cli::eval_recon(&est, &gt).map_err(anyhow::Error::msg)?;
+            println!("points           {}", s.points);
+            println!("recon.mean_mm    {:.4}", s.mean_mm);
+            println!("recon.rms_mm     {:.4}", s.rms_mm);
+            println!("recon.p95_mm     {:.4}", s.p95_mm);
             Ok(())
         }
         Command::Eval {

@@ -171,3 +171,56 @@ fn runtime_overhead_bench_writes_its_rows() {
         assert!(r["per_node_us"].as_f64().unwrap() > 0.0);
     }
 }
+
+#[test]
+fn eval_recon_scores_a_saved_model_against_a_gt_mesh_exactly() {
+    // GT: the square z = 0, 100 mm wide, as two triangles. Estimate: points 0.5 mm above it.
+    use misslam_sink_files::mesh_io::{write_ply, Geometry};
+    let dir = common::tmp_dir("eval_recon_cli");
+    std::fs::create_dir_all(&dir).unwrap();
+    let gt = dir.join("gt.ply");
+    let square = [
+        [-50.0, -50.0, 0.0],
+        [50.0, -50.0, 0.0],
+        [50.0, 50.0, 0.0],
+        [-50.0, 50.0, 0.0],
+    ];
+    write_ply(
+        &gt,
+        &Geometry {
+            positions: &square,
+            normals: None,
+            colors: None,
+            triangles: &[[0, 1, 2], [0, 2, 3]],
+        },
+    )
+    .unwrap();
+    let est = dir.join("est.ply");
+    let pts: Vec<[f32; 3]> = (0..50)
+        .map(|i| {
+            [
+                (i % 10) as f32 * 8.0 - 40.0,
+                (i / 10) as f32 * 15.0 - 30.0,
+                0.5,
+            ]
+        })
+        .collect();
+    write_ply(
+        &est,
+        &Geometry {
+            positions: &pts,
+            normals: None,
+            colors: None,
+            triangles: &[],
+        },
+    )
+    .unwrap();
+    let s = misslam::eval_cli::eval_recon(&est, &gt).unwrap();
+    assert_eq!(s.points, 50);
+    for v in [s.mean_mm, s.rms_mm, s.p95_mm] {
+        assert!((v - 0.5).abs() < 1e-5, "{v}");
+    }
+    // A point cloud is no GT surface.
+    let e = misslam::eval_cli::eval_recon(&gt, &est).unwrap_err();
+    assert!(e.contains("triangles"), "{e}");
+}

@@ -15,6 +15,20 @@ pub struct MeshData {
     pub triangles: Vec<[u32; 3]>,
 }
 
+/// Reads the vertices (and faces, if any) of a PLY point cloud or mesh, or of any mesh
+/// [`read_mesh`] reads.
+pub fn read_geometry(path: &Path) -> Result<MeshData, String> {
+    let is_ply = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case("ply"));
+    if is_ply {
+        let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        return parse_ply_points(&bytes).map_err(|e| format!("{}: {e}", path.display()));
+    }
+    read_mesh(path)
+}
+
 /// Reads a mesh, choosing the format by extension (`obj`, `ply`, `gltf`, `glb`).
 pub fn read_mesh(path: &Path) -> Result<MeshData, String> {
     let ext = path
@@ -81,8 +95,17 @@ type PlyProperty = (String, String, Option<String>);
 /// A PLY element: name, count, properties.
 type PlyElement = (String, usize, Vec<PlyProperty>);
 
-/// Parses PLY bytes (ASCII or binary little-endian).
+/// Parses PLY bytes (ASCII or binary little-endian); a mesh needs faces.
 pub fn parse_ply(bytes: &[u8]) -> Result<MeshData, String> {
+    parse_ply_impl(bytes, true)
+}
+
+/// Parses PLY bytes that may hold only vertices (a point cloud or surfel model).
+pub fn parse_ply_points(bytes: &[u8]) -> Result<MeshData, String> {
+    parse_ply_impl(bytes, false)
+}
+
+fn parse_ply_impl(bytes: &[u8], require_faces: bool) -> Result<MeshData, String> {
     let end = bytes
         .windows(10)
         .position(|w| w == b"end_header")
@@ -214,7 +237,7 @@ pub fn parse_ply(bytes: &[u8]) -> Result<MeshData, String> {
             vertices.len()
         ));
     }
-    if triangles.is_empty() {
+    if require_faces && triangles.is_empty() {
         return Err("no faces".into());
     }
     Ok(MeshData {
