@@ -111,3 +111,34 @@ fn mis_slam_runs_over_the_real_hamlyn_frames_without_failing() {
         }
     }
 }
+
+#[test]
+fn the_model_and_the_graph_stay_within_their_caps() {
+    // A wide, quick sweep keeps showing new tissue: uncapped, the graph grows from its 75 first
+    // nodes and the model past 9,000 surfels; capped, both hold and the run goes on.
+    let wide = [
+        "graph.frames.count=12",
+        "src.sweep_mm=30",
+        "src.sweep_period_s=1.5",
+    ];
+    let free = run(&wide, "mis_slam_uncapped");
+    let mut capped_sets = wide.to_vec();
+    capped_sets.extend(["fusion.max_surfels=6000", "fusion.max_nodes=80"]);
+    let capped = run(&capped_sets, "mis_slam_caps");
+    eprintln!(
+        "uncapped: {} surfels, {} nodes; capped: {} surfels, {} nodes",
+        free["fusion.surfels"],
+        free["fusion.nodes"],
+        capped["fusion.surfels"],
+        capped["fusion.nodes"]
+    );
+    assert!(free["fusion.nodes"] > 100.0 && free["fusion.surfels"] > 9000.0);
+    assert!(capped["fusion.surfels"] <= 6000.0);
+    // The cap stops growth; one growth step may overshoot it by the nodes it adds at once.
+    assert!(
+        capped["fusion.nodes"] <= 80.0 + 15.0,
+        "{}",
+        capped["fusion.nodes"]
+    );
+    assert!(capped["recon.mean_mm"] < 1.0);
+}

@@ -73,6 +73,9 @@ pub struct Params {
     pub unstable_frames: u64,
     /// Most surfels kept; beyond it no new ones are added (logged).
     pub max_surfels: usize,
+    /// Most graph nodes; beyond it the graph stops growing (logged) and new surfels bind to the
+    /// nodes there are.
+    pub max_nodes: usize,
 }
 
 impl Default for Params {
@@ -92,6 +95,7 @@ impl Default for Params {
             stable_weight: 3.0,
             unstable_frames: 10,
             max_surfels: 400_000,
+            max_nodes: 20_000,
         }
     }
 }
@@ -131,6 +135,9 @@ impl Params {
         }
         if self.max_surfels == 0 {
             return Err(param_err("max_surfels", "must be at least 1".into()));
+        }
+        if self.max_nodes == 0 {
+            return Err(param_err("max_nodes", "must be at least 1".into()));
         }
         Ok(())
     }
@@ -505,8 +512,16 @@ impl SurfelNode {
                 m.retain(&keep);
             }
             // 5. Graph growth, then every binding again (new nodes change the neighbourhoods).
-            if graph.grow(&grown) > 0 {
-                m.bindings = graph.bind_all(&m.canon);
+            if graph.len() < self.p.max_nodes {
+                if graph.grow(&grown) > 0 {
+                    m.bindings = graph.bind_all(&m.canon);
+                }
+            } else if !grown.is_empty() {
+                tracing::warn!(
+                    frame = frame.index,
+                    "graph cap {} reached: the graph no longer grows",
+                    self.p.max_nodes
+                );
             }
         }
 
