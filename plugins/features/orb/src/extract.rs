@@ -329,9 +329,12 @@ fn detect_level(l: usize, p: &OrbParams, s: &mut OrbScratch) {
         // The retry cells are disjoint from each other and held no corner before: no pixel is
         // detected twice, so no sort or de-duplication is needed.
     }
-    s.nms_map.clear();
-    s.nms_map.resize(w * h, 0);
-    fast::non_max_suppression(&mut s.corners, w, &mut s.nms_map);
+    // The map stays zeroed between calls (the suppression clears what it wrote), so it only
+    // needs to grow, never to be cleared.
+    if s.nms_map.len() < w * h {
+        s.nms_map.resize(w * h, 0);
+    }
+    fast::non_max_suppression(&mut s.corners, w, &mut s.nms_map[..w * h]);
 }
 
 /// Harris response with Sobel gradients over a 7x7 block, normalised as OpenCV's ORB does.

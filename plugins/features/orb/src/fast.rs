@@ -352,34 +352,41 @@ fn detect_scalar(
 /// broken by raster order, so a plateau keeps exactly one). Each pixel must appear at most once. `map` is a zeroed `w * h` buffer
 /// and is zeroed again on return.
 pub fn non_max_suppression(corners: &mut Vec<Corner>, w: usize, map: &mut [u8]) {
+    KEEP.with_borrow_mut(|keep| suppress(corners, w, map, keep));
+}
+
+thread_local! {
+    /// Per-thread buffer of the suppression's decisions (no allocation per level and frame).
+    static KEEP: std::cell::RefCell<Vec<bool>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+fn suppress(corners: &mut Vec<Corner>, w: usize, map: &mut [u8], keep: &mut Vec<bool>) {
     for c in corners.iter() {
         let i = c.y as usize * w + c.x as usize;
         map[i] = map[i].max(c.score.max(1));
     }
-    let keep: Vec<bool> = corners
-        .iter()
-        .map(|c| {
-            let (x, y) = (c.x as usize, c.y as usize);
-            let s = map[y * w + x];
-            if s != c.score.max(1) {
-                return false; // a duplicate with a lower score
-            }
-            for dy in 0..3usize {
-                for dx in 0..3usize {
-                    if dx == 1 && dy == 1 {
-                        continue;
-                    }
-                    let n = map[(y + dy - 1) * w + x + dx - 1];
-                    // Earlier neighbours (in raster order) win ties.
-                    let earlier = dy == 0 || (dy == 1 && dx == 0);
-                    if n > s || (n == s && earlier) {
-                        return false;
-                    }
+    keep.clear();
+    keep.extend(corners.iter().map(|c| {
+        let (x, y) = (c.x as usize, c.y as usize);
+        let s = map[y * w + x];
+        if s != c.score.max(1) {
+            return false; // a duplicate with a lower score
+        }
+        for dy in 0..3usize {
+            for dx in 0..3usize {
+                if dx == 1 && dy == 1 {
+                    continue;
+                }
+                let n = map[(y + dy - 1) * w + x + dx - 1];
+                // Earlier neighbours (in raster order) win ties.
+                let earlier = dy == 0 || (dy == 1 && dx == 0);
+                if n > s || (n == s && earlier) {
+                    return false;
                 }
             }
-            true
-        })
-        .collect();
+        }
+        true
+    }));
     for c in corners.iter() {
         map[c.y as usize * w + c.x as usize] = 0;
     }
