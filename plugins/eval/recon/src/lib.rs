@@ -47,6 +47,20 @@ fn dot(a: V3, b: V3) -> f32 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
+/// The estimate's points moved into the GT world so that they sit where the true camera would
+/// see them: `world_gt_from_camera * camera_from_world_est`. Scoring these against the GT
+/// surface equals scoring both in their own camera frames.
+pub fn scope_relative(points: &[V3], est: &Isometry3<f64>, gt: &Isometry3<f64>) -> Vec<V3> {
+    let m = gt * est.inverse();
+    points
+        .iter()
+        .map(|p| {
+            let q = m * Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+            [q.x as f32, q.y as f32, q.z as f32]
+        })
+        .collect()
+}
+
 /// Squared distance from `p` to triangle `abc` (Ericson, Real-Time Collision Detection 5.1.5).
 pub fn point_triangle_dist2(p: V3, a: V3, b: V3, c: V3) -> f32 {
     let (ab, ac, ap) = (sub(b, a), sub(c, a), sub(p, a));
@@ -295,36 +309,21 @@ impl Node for EvalRecon {
         } else {
             return Err(NodeError::msg("connect one of `model`, `points` or `mesh`"));
         };
-        // Scope-relative (robocentric) scoring: with both poses connected, the estimate is taken
-        // into its camera frame by its own pose and the GT surface by the true pose, so a pose
-        // error that the reconstruction shares does not count (the surgeon sees the model from
-        // the scope).
+        // Scope-relative (robocentric) scoring: with both poses connected, the estimate is seen
+        // from its own camera pose and the GT surface from the true one, so a pose error the
+        // reconstruction shares does not count (the surgeon sees the model from the scope).
+        // Distances are rigid-invariant: moving the estimate by world_gt_from_camera *
+        // camera_from_world_est scores the same as moving both into their camera frames, and
+        // leaves the GT mesh untouched.
         let pose = inputs.opt::<Pose>("pose")?;
         let pose_gt = inputs.opt::<Pose>("pose_gt")?;
-        let relative;
-        let (points, gt): (&[V3], &Mesh) = match (pose, pose_gt) {
+        let relative: Vec<V3>;
+        let points: &[V3] = match (pose, pose_gt) {
             (Some(e), Some(g)) => {
-                let to_cam = |iso: &Isometry3<f64>, v: &[V3]| -> Vec<V3> {
-                    let inv = iso.inverse();
-                    v.iter()
-                        .map(|p| {
-                            let q = inv * Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
-                            [q.x as f32, q.y as f32, q.z as f32]
-                        })
-                        .collect()
-                };
-                relative = (
-                    to_cam(&e.world_from_camera, world_points),
-                    Mesh {
-                        vertices: to_cam(&g.world_from_camera, &gt.vertices),
-                        triangles: gt.triangles.clone(),
-                        normals: None,
-                        colors: None,
-                    },
-                );
-                (&relative.0, &relative.1)
+                relative = scope_relative(world_points, &e.world_from_camera, &g.world_from_camera);
+                &relative
             }
-            (None, None) => (world_points, gt.as_ref()),
+            (None, None) => world_points,
             _ => {
                 return Err(NodeError::msg(
                     "connect both `pose` and `pose_gt` (camera-frame scoring) or neither",
@@ -486,6 +485,47 @@ mod tests {
             (s.p95_mm - 1.9).abs() < 1e-4,
             "nearest rank 19 of 20: {}",
             s.p95_mm
+        );
+    }
+
+    #[test]
+    fn scope_relative_scoring_cancels_a_shared_pose_error() {
+        use misslam_framework::nalgebra::{Translation3, UnitQuaternion};
+        let gt = plane();
+        let gt_pose = Isometry3::from_parts(
+            Translation3::new(1.0, -2.0, -80.0),
+            UnitQuaternion::from_euler_angles(0.1, -0.05, 0.2),
+        );
+        // The estimated pose is 3 mm and 2 degrees off; the model was built with it, so it is
+        // off by the same motion in the world: 0.5 mm above the plane as seen from the scope.
+        let err = Isometry3::from_parts(
+            Translation3::new(3.0, 0.0, 1.0),
+            UnitQuaternion::from_euler_angles(0.0, 0.035, 0.0),
+        );
+        let est_pose = err * gt_pose;
+        let seen: Vec<V3> = (0..25)
+            .map(|i| {
+                [
+                    (i % 5) as f32 * 10.0 - 20.0,
+                    (i / 5) as f32 * 10.0 - 20.0,
+                    100.5,
+                ]
+            })
+            .collect();
+        let model: Vec<V3> = seen
+            .iter()
+            .map(|p| {
+                let q = err * Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+                [q.x as f32, q.y as f32, q.z as f32]
+            })
+            .collect();
+        let (world, _) = score(&model, &gt).unwrap();
+        assert!(world.mean_mm > 1.0, "{}", world.mean_mm);
+        let rel = scope_relative(&model, &est_pose, &gt_pose);
+        let (s, _) = score(&rel, &gt).unwrap();
+        assert!(
+            (s.mean_mm - 0.5).abs() < 1e-4 && (s.p95_mm - 0.5).abs() < 1e-4,
+            "{s:?}"
         );
     }
 
