@@ -78,6 +78,17 @@ pub enum BuildError {
     Failed(String),
 }
 
+impl BuildError {
+    /// A wrong parameter at `path` (e.g. `graph.spacing`); its first component is the key.
+    pub fn param(path: &str, message: impl Into<String>) -> Self {
+        BuildError::Param {
+            key: Some(path.split('.').next().unwrap_or(path).to_owned()),
+            path: path.to_owned(),
+            message: message.into(),
+        }
+    }
+}
+
 impl std::fmt::Display for BuildError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {

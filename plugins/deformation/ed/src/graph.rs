@@ -384,6 +384,26 @@ impl EdGraph {
         }
     }
 
+    /// The graph as the framework's payload (nodes, A and t per node, edges), for Rerun and
+    /// downstream nodes.
+    pub fn to_payload(&self) -> misslam_framework::DeformationGraph {
+        let f3 = |v: &Vector3<f64>| [v.x as f32, v.y as f32, v.z as f32];
+        misslam_framework::DeformationGraph {
+            nodes: self.nodes.iter().map(f3).collect(),
+            affines: self
+                .warp
+                .iter()
+                .map(|p| [p[0], p[1], p[2], p[4], p[5], p[6], p[8], p[9], p[10]].map(|x| x as f32))
+                .collect(),
+            translations: self
+                .warp
+                .iter()
+                .map(|p| [p[3] as f32, p[7] as f32, p[11] as f32])
+                .collect(),
+            edges: self.edges().map(|(a, b)| [a, b]).collect(),
+        }
+    }
+
     /// Distance from canonical point `v` to its nearest node (infinite for an empty graph).
     pub fn nearest_node_distance(&self, v: &Vector3<f64>) -> f64 {
         let mut buf = Vec::with_capacity(1);

@@ -13,9 +13,9 @@ use crate::problem::{Intrinsics, ModelPoints, Problem, Scan, SolverParams};
 use crate::solver::{Info, SolveSet, Solver};
 use misslam_framework::nalgebra::{Isometry3, Point3, Vector3};
 use misslam_framework::{
-    BuildContext, BuildError, DeformationGraph, DepthMap, Flow, FrameInfo, Inputs, Mesh, Metrics,
-    Node, NodeContext, NodeError, NodeResult, Outputs, PointCloud, PortSpec, PortType, Pose,
-    Registry, TrackingState, TypedPlugin,
+    BuildContext, BuildError, DepthMap, Flow, FrameInfo, Inputs, Mesh, Metrics, Node, NodeContext,
+    NodeError, NodeResult, Outputs, PointCloud, PortSpec, PortType, Pose, Registry, TrackingState,
+    TypedPlugin,
 };
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -118,28 +118,27 @@ pub struct EdNode {
     scratch: Scratch,
 }
 
-fn param_err(path: &str, message: String) -> BuildError {
-    BuildError::Param {
-        key: Some(path.split('.').next().unwrap_or(path).to_owned()),
-        path: path.to_owned(),
-        message,
-    }
-}
-
 fn check(p: &BatchParams) -> Result<(), BuildError> {
-    p.graph.validate().map_err(|m| param_err("graph", m))?;
-    p.solver.validate().map_err(|m| param_err("solver", m))?;
+    p.graph
+        .validate()
+        .map_err(|m| BuildError::param("graph", m))?;
+    p.solver
+        .validate()
+        .map_err(|m| BuildError::param("solver", m))?;
     if p.model_stride == 0 {
-        return Err(param_err("model_stride", "must be at least 1".into()));
+        return Err(BuildError::param("model_stride", "must be at least 1"));
     }
     if p.normal_max_step_mm.is_nan() || p.normal_max_step_mm <= 0.0 {
-        return Err(param_err("normal_max_step_mm", "must be positive".into()));
+        return Err(BuildError::param("normal_max_step_mm", "must be positive"));
     }
     if p.visible_distance_mm.is_nan() || p.visible_distance_mm <= 0.0 {
-        return Err(param_err("visible_distance_mm", "must be positive".into()));
+        return Err(BuildError::param("visible_distance_mm", "must be positive"));
     }
     if !(p.visible_angle_deg > 0.0 && p.visible_angle_deg <= 180.0) {
-        return Err(param_err("visible_angle_deg", "must be in (0, 180]".into()));
+        return Err(BuildError::param(
+            "visible_angle_deg",
+            "must be in (0, 180]",
+        ));
     }
     Ok(())
 }
@@ -398,26 +397,7 @@ impl EdNode {
                 colors: None,
             },
         )?;
-        let g = &model.graph;
-        outputs.put(
-            "graph",
-            DeformationGraph {
-                nodes: g.nodes().iter().map(f3).collect(),
-                affines: g
-                    .warp
-                    .iter()
-                    .map(|p| {
-                        [p[0], p[1], p[2], p[4], p[5], p[6], p[8], p[9], p[10]].map(|x| x as f32)
-                    })
-                    .collect(),
-                translations: g
-                    .warp
-                    .iter()
-                    .map(|p| [p[3] as f32, p[7] as f32, p[11] as f32])
-                    .collect(),
-                edges: g.edges().map(|(a, b)| [a, b]).collect(),
-            },
-        )?;
+        outputs.put("graph", model.graph.to_payload())?;
         outputs.put(
             "pose",
             Pose {

@@ -6,10 +6,13 @@
 //!   optional cross-check;
 //! - [`stereo`]: matching along the rows of a rectified pair, with sub-pixel refinement by SAD
 //!   block matching and triangulation;
+//! - [`extractor`]: what every feature node does around its detector (both views, mask,
+//!   stereo 3D keypoints, ports);
 //! - [`guided`]: temporal matching of keypoints whose positions a predicted pose gives, searched
 //!   within a radius.
 #![deny(missing_docs)]
 
+pub mod extractor;
 pub mod guided;
 pub mod stereo;
 
@@ -309,6 +312,38 @@ mod tests {
         z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
         z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
         z ^ (z >> 31)
+    }
+
+    #[test]
+    fn keypoints_on_the_masked_border_are_dropped_with_their_descriptors() {
+        let kp = |x: f32, y: f32| Keypoint {
+            x,
+            y,
+            size: 31.0,
+            angle: 0.0,
+            response: 1.0,
+            octave: 0,
+        };
+        // A 10x4 mask whose left 3 columns are the black border.
+        let mask = Mask {
+            width: 10,
+            height: 4,
+            data: (0..40).map(|i| (i % 10 >= 3) as u8).collect(),
+        };
+        let mut kps = vec![
+            kp(1.0, 1.0),
+            kp(5.2, 2.0),
+            kp(2.6, 3.0),
+            kp(9.4, 0.0),
+            kp(12.0, 1.0),
+        ];
+        let mut desc = vec![10, 11, 12, 13, 14];
+        retain_in_mask(&mut kps, &mut desc, Some(&mask));
+        // (2.6 rounds to column 3, valid); (12, 1) lies outside the mask: dropped.
+        assert_eq!(desc, vec![11, 12, 13]);
+        assert_eq!(kps.len(), 3);
+        retain_in_mask(&mut kps, &mut desc, None);
+        assert_eq!(desc.len(), 3);
     }
 
     #[test]

@@ -5,12 +5,11 @@
 
 pub mod surf;
 
-use misslam_features_matching::retain_in_mask;
-use misslam_features_matching::stereo::{stereo_points, GrayView, StereoParams, StereoScratch};
+use misslam_features_matching::extractor::{self, Detector, StereoExtractor};
+use misslam_features_matching::stereo::StereoParams;
 use misslam_framework::{
-    BuildContext, BuildError, Descriptors, Features, Flow, FrameInfo, Image, Inputs, Keypoint,
-    Mask, Matches, Node, NodeContext, NodeError, NodeResult, Outputs, PortSpec, PortType, Registry,
-    StereoFrame, TypedPlugin,
+    BuildContext, BuildError, Descriptors, Features, Flow, FrameInfo, Inputs, Keypoint, Matches,
+    Node, NodeContext, NodeResult, Outputs, Registry, StereoFrame, TypedPlugin,
 };
 
 pub use surf::{DenseParams, SurfParams};
@@ -37,98 +36,61 @@ impl Default for Params {
     }
 }
 
-/// One image's keypoints and descriptors, with buffers reused across frames.
+/// SURF as a [`Detector`] for the shared feature-node machinery.
 #[derive(Default)]
-pub struct Extractor {
+pub struct Detect {
     scratch: surf::SurfScratch,
-    gray: Vec<u8>,
-    /// Keypoints of the last image.
-    pub keypoints: Vec<Keypoint>,
-    /// Their descriptors.
-    pub descriptors: Vec<[f32; 64]>,
 }
 
-impl Extractor {
-    /// Extracts from an image, dropping keypoints on invalid pixels of `mask`.
-    pub fn run(&mut self, img: &Image, mask: Option<&Mask>, p: &SurfParams) -> Result<(), String> {
-        img.gray_into(&mut self.gray);
+impl Detector for Detect {
+    type Params = SurfParams;
+    type Descriptor = [f32; 64];
+
+    fn detect(
+        &mut self,
+        gray: &[u8],
+        width: usize,
+        height: usize,
+        params: &SurfParams,
+        keypoints: &mut Vec<Keypoint>,
+        descriptors: &mut Vec<[f32; 64]>,
+    ) -> Result<(), String> {
         surf::extract(
-            &self.gray,
-            img.width as usize,
-            img.height as usize,
-            p,
+            gray,
+            width,
+            height,
+            params,
             &mut self.scratch,
-            &mut self.keypoints,
-            &mut self.descriptors,
-        )?;
-        let mask = mask.filter(|m| m.width == img.width && m.height == img.height);
-        retain_in_mask(&mut self.keypoints, &mut self.descriptors, mask);
-        Ok(())
+            keypoints,
+            descriptors,
+        )
+    }
+
+    fn wrap(d: Vec<[f32; 64]>) -> Descriptors {
+        Descriptors::Float64(d)
+    }
+
+    fn unwrap(d: Descriptors) -> Vec<[f32; 64]> {
+        match d {
+            Descriptors::Float64(d) => d,
+            Descriptors::Binary256(_) => Vec::new(),
+        }
     }
 }
 
 /// The node.
 pub struct SurfNode {
     params: Params,
-    left: Extractor,
-    right: Extractor,
-    stereo: StereoScratch,
+    views: StereoExtractor<Detect>,
 }
 
 impl SurfNode {
     /// Features of a stereo pair: left keypoints with 3D points (NaN without a stereo match),
     /// and the stereo matches (query = left, train = right).
     pub fn stereo_features(&mut self, pair: &StereoFrame) -> Result<(Features, Matches), String> {
-        if (pair.left.width, pair.left.height) != (pair.right.width, pair.right.height) {
-            return Err(format!(
-                "left image is {}x{} but right is {}x{}",
-                pair.left.width, pair.left.height, pair.right.width, pair.right.height
-            ));
-        }
         let p = &self.params;
-        let (left, right) = (&mut self.left, &mut self.right);
-        let mut run_l = || left.run(&pair.left, pair.left_mask.as_ref(), &p.detector);
-        let mut run_r = || right.run(&pair.right, pair.right_mask.as_ref(), &p.detector);
-        let (rl, rr) = if p.parallel {
-            rayon::join(run_l, run_r)
-        } else {
-            (run_l(), run_r())
-        };
-        rl.map_err(|e| format!("left image: {e}"))?;
-        rr.map_err(|e| format!("right image: {e}"))?;
-        let (w, h) = (pair.left.width as usize, pair.left.height as usize);
-        let ld = Descriptors::Float64(std::mem::take(&mut self.left.descriptors));
-        let rd = Descriptors::Float64(std::mem::take(&mut self.right.descriptors));
-        let (points, matches) = stereo_points(
-            &self.left.keypoints,
-            &ld,
-            &self.right.keypoints,
-            &rd,
-            GrayView {
-                width: w,
-                height: h,
-                data: &self.left.gray,
-            },
-            GrayView {
-                width: w,
-                height: h,
-                data: &self.right.gray,
-            },
-            &pair.calib,
-            &p.stereo,
-            &mut self.stereo,
-        );
-        if let Descriptors::Float64(d) = rd {
-            self.right.descriptors = d;
-        }
-        Ok((
-            Features {
-                keypoints: self.left.keypoints.clone(),
-                descriptors: ld,
-                points: Some(points),
-            },
-            matches,
-        ))
+        self.views
+            .stereo_features(pair, &p.detector, &p.stereo, p.parallel)
     }
 }
 
@@ -140,36 +102,9 @@ impl Node for SurfNode {
         inputs: &Inputs,
         outputs: &mut Outputs,
     ) -> NodeResult<Flow> {
-        if let Some(pair) = inputs.opt::<StereoFrame>("stereo")? {
-            let (features, matches) = self.stereo_features(pair).map_err(NodeError::msg)?;
-            outputs.put("features", features)?;
-            outputs.put("stereo_matches", matches)?;
-        } else if let Some(img) = inputs.opt::<Image>("image")? {
-            self.left
-                .run(img, None, &self.params.detector)
-                .map_err(NodeError::msg)?;
-            outputs.put(
-                "features",
-                Features {
-                    keypoints: self.left.keypoints.clone(),
-                    descriptors: Descriptors::Float64(self.left.descriptors.clone()),
-                    points: None,
-                },
-            )?;
-        } else {
-            return Err(NodeError::msg(
-                "neither `stereo` nor `image` received anything on this frame",
-            ));
-        }
-        Ok(Flow::Continue)
-    }
-}
-
-fn param_err(path: &str, message: String) -> BuildError {
-    BuildError::Param {
-        key: Some(path.split('.').next().unwrap_or(path).to_owned()),
-        path: path.to_owned(),
-        message,
+        let p = &self.params;
+        self.views
+            .process(inputs, outputs, &p.detector, &p.stereo, p.parallel)
     }
 }
 
@@ -178,44 +113,25 @@ pub fn build(params: Params, _: &BuildContext) -> Result<SurfNode, BuildError> {
     params
         .detector
         .validate()
-        .map_err(|m| param_err("detector", m))?;
+        .map_err(|m| BuildError::param("detector", m))?;
     params
         .stereo
         .validate()
-        .map_err(|m| param_err("stereo", m))?;
+        .map_err(|m| BuildError::param("stereo", m))?;
     Ok(SurfNode {
         params,
-        left: Extractor::default(),
-        right: Extractor::default(),
-        stereo: StereoScratch::default(),
+        views: StereoExtractor::default(),
     })
 }
 
 /// Registers `features.surf`.
 pub fn register(registry: &mut Registry) -> Result<(), String> {
+    let (inputs, outputs) = extractor::ports("64-float unit descriptors");
     registry.register(TypedPlugin::new(
         "features.surf",
         "SURF keypoints (box-filter Hessian scale space, Haar orientation, 64-D) or dense SURF; with a stereo pair, 3D keypoints by row matching",
-        vec![
-            PortSpec::optional(
-                "stereo",
-                PortType::Stereo,
-                "rectified pair: left keypoints get 3D points from the right image",
-            ),
-            PortSpec::optional("image", PortType::Image, "a single image (no 3D points)"),
-        ],
-        vec![
-            PortSpec::new(
-                "features",
-                PortType::Features,
-                "left keypoints, 64-float unit descriptors, camera-frame 3D points (mm, NaN unmatched)",
-            ),
-            PortSpec::optional(
-                "stereo_matches",
-                PortType::Matches,
-                "left-to-right matches (query = left), with the left 3D points",
-            ),
-        ],
+        inputs,
+        outputs,
         build,
     ))
 }

@@ -24,9 +24,9 @@ use misslam_deformation_ed::problem::{Intrinsics, ModelPoints, Problem, Scan, So
 use misslam_deformation_ed::solver::{SolveSet, Solver};
 use misslam_framework::nalgebra::{Isometry3, Matrix3, Point3, Vector3};
 use misslam_framework::{
-    BuildContext, BuildError, DeformationGraph, DepthMap, Flow, FrameInfo, Image, Inputs, Metrics,
-    Node, NodeContext, NodeError, NodeResult, Outputs, PortSpec, PortType, Pose, Registry,
-    StereoFrame, SurfelModel, TrackingState, TypedPlugin,
+    BuildContext, BuildError, DepthMap, Flow, FrameInfo, Image, Inputs, Metrics, Node, NodeContext,
+    NodeError, NodeResult, Outputs, PortSpec, PortType, Pose, Registry, StereoFrame, SurfelModel,
+    TrackingState, TypedPlugin,
 };
 
 /// Which ED solver runs.
@@ -100,20 +100,16 @@ impl Default for Params {
     }
 }
 
-fn param_err(path: &str, message: String) -> BuildError {
-    BuildError::Param {
-        key: Some(path.split('.').next().unwrap_or(path).to_owned()),
-        path: path.to_owned(),
-        message,
-    }
-}
-
 impl Params {
     fn check(&self) -> Result<(), BuildError> {
-        self.graph.validate().map_err(|m| param_err("graph", m))?;
-        self.solver.validate().map_err(|m| param_err("solver", m))?;
+        self.graph
+            .validate()
+            .map_err(|m| BuildError::param("graph", m))?;
+        self.solver
+            .validate()
+            .map_err(|m| BuildError::param("solver", m))?;
         if self.stride == 0 {
-            return Err(param_err("stride", "must be at least 1".into()));
+            return Err(BuildError::param("stride", "must be at least 1"));
         }
         for (name, v) in [
             ("normal_max_step_mm", self.normal_max_step_mm as f64),
@@ -122,7 +118,10 @@ impl Params {
             ("max_weight", self.max_weight as f64),
         ] {
             if v.is_nan() || v <= 0.0 {
-                return Err(param_err(name, format!("must be positive, got {v}")));
+                return Err(BuildError::param(
+                    name,
+                    format!("must be positive, got {v}"),
+                ));
             }
         }
         for (name, v) in [
@@ -130,14 +129,17 @@ impl Params {
             ("fuse_angle_deg", self.fuse_angle_deg),
         ] {
             if !(v > 0.0 && v <= 180.0) {
-                return Err(param_err(name, format!("must lie in (0, 180], got {v}")));
+                return Err(BuildError::param(
+                    name,
+                    format!("must lie in (0, 180], got {v}"),
+                ));
             }
         }
         if self.max_surfels == 0 {
-            return Err(param_err("max_surfels", "must be at least 1".into()));
+            return Err(BuildError::param("max_surfels", "must be at least 1"));
         }
         if self.max_nodes == 0 {
-            return Err(param_err("max_nodes", "must be at least 1".into()));
+            return Err(BuildError::param("max_nodes", "must be at least 1"));
         }
         Ok(())
     }
@@ -557,25 +559,7 @@ impl SurfelNode {
                 stability: m.stability.clone(),
             },
         )?;
-        outputs.put(
-            "graph",
-            DeformationGraph {
-                nodes: graph.nodes().iter().map(f3).collect(),
-                affines: graph
-                    .warp
-                    .iter()
-                    .map(|p| {
-                        [p[0], p[1], p[2], p[4], p[5], p[6], p[8], p[9], p[10]].map(|x| x as f32)
-                    })
-                    .collect(),
-                translations: graph
-                    .warp
-                    .iter()
-                    .map(|p| [p[3] as f32, p[7] as f32, p[11] as f32])
-                    .collect(),
-                edges: graph.edges().map(|(a, b)| [a, b]).collect(),
-            },
-        )?;
+        outputs.put("graph", graph.to_payload())?;
         outputs.put(
             "pose",
             Pose {
