@@ -475,9 +475,16 @@ fn gray_image(path: &Path) -> Result<(u32, u32, Vec<u8>), String> {
     Ok((img.width(), img.height(), img.into_raw()))
 }
 
-fn median_ms(mut v: Vec<f64>) -> f64 {
+/// Runs `f` `repeat` times (at least once) and returns the median wall time, ms.
+fn median_ms<E>(repeat: usize, mut f: impl FnMut() -> Result<(), E>) -> Result<f64, E> {
+    let mut v = Vec::with_capacity(repeat.max(1));
+    for _ in 0..repeat.max(1) {
+        let t = Instant::now();
+        f()?;
+        v.push(t.elapsed().as_secs_f64() * 1e3);
+    }
     v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
+    Ok(v[v.len() / 2])
 }
 
 /// ORB timing and matching on one image or a pair (see [`FeaturesBench`]).
@@ -510,9 +517,7 @@ pub fn features(
     let (w, h, gray) = gray_image(image)?;
     let mut scratch = OrbScratch::default();
     let (mut k1, mut d1) = (Vec::new(), Vec::new());
-    let mut times = Vec::new();
-    for _ in 0..repeat.max(1) {
-        let t = Instant::now();
+    let orb_ms = median_ms(repeat, || {
         extract(
             &gray,
             w as usize,
@@ -521,15 +526,14 @@ pub fn features(
             &mut scratch,
             &mut k1,
             &mut d1,
-        )?;
-        times.push(t.elapsed().as_secs_f64() * 1e3);
-    }
+        )
+    })?;
     let mut out = FeaturesBench {
         width: w,
         height: h,
         keypoints: k1.len(),
         keypoints2: 0,
-        orb_ms: median_ms(times),
+        orb_ms,
         knn_ms: None,
         matches: Vec::new(),
     };
@@ -547,13 +551,11 @@ pub fn features(
         )?;
         out.keypoints2 = k2.len();
         let mut nn = Vec::new();
-        let mut times = Vec::new();
-        for _ in 0..repeat.max(1) {
-            let t = Instant::now();
+        let knn_ms = median_ms(repeat, || {
             knn2_hamming(&d1, &d2, &mut nn);
-            times.push(t.elapsed().as_secs_f64() * 1e3);
-        }
-        out.knn_ms = Some(median_ms(times));
+            Ok::<(), String>(())
+        })?;
+        out.knn_ms = Some(knn_ms);
         let m = match_descriptors(
             &Descriptors::Binary256(d1),
             &Descriptors::Binary256(d2),
@@ -586,9 +588,7 @@ pub fn surf(image: &Path, max_keypoints: usize, repeat: usize) -> Result<(usize,
     let (w, h, gray) = gray_image(image)?;
     let mut scratch = SurfScratch::default();
     let (mut k, mut d) = (Vec::new(), Vec::new());
-    let mut times = Vec::new();
-    for _ in 0..repeat.max(1) {
-        let t = Instant::now();
+    let ms = median_ms(repeat, || {
         extract(
             &gray,
             w as usize,
@@ -597,8 +597,7 @@ pub fn surf(image: &Path, max_keypoints: usize, repeat: usize) -> Result<(usize,
             &mut scratch,
             &mut k,
             &mut d,
-        )?;
-        times.push(t.elapsed().as_secs_f64() * 1e3);
-    }
-    Ok((k.len(), median_ms(times)))
+        )
+    })?;
+    Ok((k.len(), ms))
 }

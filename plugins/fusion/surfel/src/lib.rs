@@ -622,7 +622,11 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
         "template-free surfel fusion with an ED warp (MIS-SLAM): visible selection, ED solve, weighted fusion, growth",
         vec![
             PortSpec::new("depth", PortType::Depth, "the live depth (postprocessed), mm"),
-            PortSpec::optional("stereo", PortType::Stereo, "the pair (the left image colours the surfels)"),
+            PortSpec::optional(
+                "stereo",
+                PortType::Stereo,
+                "the pair (the left image colours the surfels; without it they get one neutral tissue colour)",
+            ),
             PortSpec::optional(
                 "pose",
                 PortType::Pose,
