@@ -601,3 +601,70 @@ pub fn surf(image: &Path, max_keypoints: usize, repeat: usize) -> Result<(usize,
     })?;
     Ok((k.len(), ms))
 }
+
+/// One ELAS run's figures ([`elas`]).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ElasBench {
+    /// Image width, px.
+    pub width: u32,
+    /// Image height, px.
+    pub height: u32,
+    /// Support points found.
+    pub support_points: usize,
+    /// Median total time, ms.
+    pub ms: f64,
+    /// Median time of each step, ms: descriptors, support, triangulation, dense, postprocess.
+    pub steps_ms: [f64; 5],
+    /// Left disparity of the last run (px, NaN invalid), row-major.
+    #[serde(skip)]
+    pub disparity: Vec<f32>,
+}
+
+/// ELAS on a pair (threads: as rayon is configured, e.g. `RAYON_NUM_THREADS=1`), with the time
+/// of each step (median of `repeat`).
+pub fn elas(
+    left: &Path,
+    right: &Path,
+    p: &misslam_depth_elas::ElasParams,
+    repeat: usize,
+) -> Result<ElasBench, String> {
+    let (w, h, l) = gray_image(left)?;
+    let (w2, h2, r) = gray_image(right)?;
+    if (w, h) != (w2, h2) {
+        return Err(format!(
+            "{} is {w}x{h} but {} is {w2}x{h2}",
+            left.display(),
+            right.display()
+        ));
+    }
+    let mut steps: Vec<[f64; 5]> = Vec::new();
+    let mut last = None;
+    let mut scratch = misslam_depth_elas::Scratch::default();
+    let ms = median_ms(repeat, || {
+        let o = misslam_depth_elas::elas_with(&l, &r, w as usize, h as usize, p, &mut scratch)?;
+        let t = o.timing;
+        steps.push([
+            t.descriptors,
+            t.support,
+            t.triangulation,
+            t.dense,
+            t.postprocess,
+        ]);
+        last = Some(o);
+        Ok::<(), String>(())
+    })?;
+    let o = last.ok_or("no run")?;
+    let steps_ms = std::array::from_fn(|k| {
+        let mut v: Vec<f64> = steps.iter().map(|s| s[k]).collect();
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    });
+    Ok(ElasBench {
+        width: w,
+        height: h,
+        support_points: o.support.len(),
+        ms,
+        steps_ms,
+        disparity: o.left,
+    })
+}

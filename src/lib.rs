@@ -20,6 +20,7 @@ pub const BUILTIN: &[RegisterFn] = &[
     misslam_sink_files::register,
     misslam_image_gray::register,
     misslam_depth_sgm::register,
+    misslam_depth_elas::register,
     misslam_depth_postprocess::register,
     misslam_eval_depth::register,
     misslam_eval_recon::register,
@@ -63,6 +64,7 @@ mod tests {
             [
                 "deformation.batch",
                 "deformation.decoupled",
+                "depth.elas",
                 "depth.postprocess",
                 "depth.sgm",
                 "eval.depth",

@@ -153,6 +153,31 @@ enum PhantomCommand {
 
 #[derive(Subcommand)]
 enum BenchCommand {
+    /// ELAS on a rectified pair: the time of each step (median of runs; threads as
+    /// RAYON_NUM_THREADS says) and, with `--out`, the left disparity as PFM.
+    Elas {
+        /// Left image (PNG, PGM; converted to gray).
+        #[arg(long)]
+        left: PathBuf,
+        /// Right image.
+        #[arg(long)]
+        right: PathBuf,
+        /// robotics or middlebury.
+        #[arg(long, default_value = "robotics")]
+        preset: String,
+        /// Largest disparity searched.
+        #[arg(long, default_value_t = 255)]
+        disp_max: u32,
+        /// Sub-pixel refinement (off in libelas's presets).
+        #[arg(long)]
+        subpixel: bool,
+        /// Runs.
+        #[arg(long, default_value_t = 5)]
+        repeat: usize,
+        /// Write the left disparity here (PFM, NaN invalid).
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// Render speed of the phantom (both views and all GT) per scene at 640x480 and 360x288.
     Phantom {
         /// Frames per configuration.
@@ -325,6 +350,42 @@ fn run(command: Command) -> anyhow::Result<()> {
             }
             if let Some(path) = out {
                 std::fs::write(&path, serde_json::to_string_pretty(&rows)?)
+                    .with_context(|| format!("writing {}", path.display()))?;
+            }
+            Ok(())
+        }
+        Command::Bench {
+            which:
+                BenchCommand::Elas {
+                    left,
+                    right,
+                    preset,
+                    disp_max,
+                    subpixel,
+                    repeat,
+                    out,
+                },
+        } => {
+            let mut p = match preset.as_str() {
+                "robotics" => misslam_depth_elas::ElasParams::robotics(),
+                "middlebury" => misslam_depth_elas::ElasParams::middlebury(),
+                other => anyhow::bail!("--preset `{other}`: expected robotics or middlebury"),
+            };
+            p.disp_max = disp_max;
+            p.subpixel = subpixel;
+            let r = misslam::bench::elas(&left, &right, &p, repeat).map_err(anyhow::Error::msg)?;
+            let s = r.steps_ms;
+            println!(
+                "ELAS {preset} {}x{}, disp_max {disp_max}: {:.1} ms (median of {repeat}); descriptors {:.1}, support {:.1} ({} points), triangulation {:.1}, dense {:.1}, postprocess {:.1}",
+                r.width, r.height, r.ms, s[0], s[1], r.support_points, s[2], s[3], s[4]
+            );
+            if let Some(path) = out {
+                let map = misslam::framework::FloatMap {
+                    width: r.width,
+                    height: r.height,
+                    data: r.disparity,
+                };
+                misslam::framework::pfm::write_pfm(&path, &map)
                     .with_context(|| format!("writing {}", path.display()))?;
             }
             Ok(())

@@ -444,11 +444,36 @@ pub fn median3(d: &[f32], w: usize, h: usize) -> Vec<f32> {
         .collect()
 }
 
+/// Buffers of [`remove_speckles_with`], reused across frames.
+#[derive(Default)]
+pub struct SpeckleScratch {
+    label: Vec<u32>,
+    stack: Vec<usize>,
+    region: Vec<usize>,
+}
+
 /// Invalidates 4-connected regions (neighbours within `range`) smaller than `window` pixels.
 pub fn remove_speckles(d: &mut [f32], w: usize, h: usize, window: usize, range: f32) {
-    let mut label = vec![0u32; w * h];
-    let mut stack = Vec::new();
-    let mut region = Vec::new();
+    remove_speckles_with(d, w, h, window, range, &mut SpeckleScratch::default());
+}
+
+/// [`remove_speckles`] with buffers kept by the caller.
+pub fn remove_speckles_with(
+    d: &mut [f32],
+    w: usize,
+    h: usize,
+    window: usize,
+    range: f32,
+    s: &mut SpeckleScratch,
+) {
+    let SpeckleScratch {
+        label,
+        stack,
+        region,
+    } = s;
+    label.clear();
+    label.resize(w * h, 0);
+    stack.clear();
     let mut next = 1u32;
     for start in 0..w * h {
         if label[start] != 0 || !d[start].is_finite() {
@@ -480,7 +505,7 @@ pub fn remove_speckles(d: &mut [f32], w: usize, h: usize, window: usize, range: 
             }
         }
         if region.len() < window {
-            for &i in &region {
+            for &i in region.iter() {
                 d[i] = f32::NAN;
             }
         }
