@@ -61,10 +61,13 @@ pub fn match_support(
     let (mut e1, mut d1, mut e2) = (u32::MAX, usize::MAX, u32::MAX);
     for d in d_lo..=d_hi {
         let uw = if right { u + d } else { u - d };
-        let e = sad(r[0], &b[top + uw - STEP])
-            + sad(r[1], &b[top + uw + STEP])
-            + sad(r[2], &b[bot + uw - STEP])
-            + sad(r[3], &b[bot + uw + STEP]);
+        // The costs only add up: once the top pair reaches the second best, this disparity can
+        // be neither best nor second (the result is exactly that of the full sum).
+        let top_pair = sad(r[0], &b[top + uw - STEP]) + sad(r[1], &b[top + uw + STEP]);
+        if top_pair >= e2 {
+            continue;
+        }
+        let e = top_pair + sad(r[2], &b[bot + uw - STEP]) + sad(r[3], &b[bot + uw + STEP]);
         if e < e1 {
             e2 = e1;
             e1 = e;
