@@ -239,6 +239,25 @@ pub struct DisparityMap {
     pub calib: StereoCalib,
 }
 
+impl DisparityMap {
+    /// The depth of every pixel (`StereoCalib::depth_from_disparity`; NaN where invalid).
+    pub fn to_depth(&self) -> DepthMap {
+        DepthMap {
+            map: FloatMap {
+                width: self.map.width,
+                height: self.map.height,
+                data: self
+                    .map
+                    .data
+                    .iter()
+                    .map(|&d| self.calib.depth_from_disparity(d))
+                    .collect(),
+            },
+            calib: self.calib,
+        }
+    }
+}
+
 /// Depth (z along the optical axis) of the left camera in mm.
 #[derive(Clone, Debug)]
 pub struct DepthMap {

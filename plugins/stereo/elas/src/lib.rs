@@ -23,8 +23,8 @@ pub mod filters;
 pub mod support;
 
 use misslam_framework::{
-    BuildContext, BuildError, DepthMap, DisparityMap, FloatMap, Flow, FrameInfo, Inputs, Metrics,
-    Node, NodeContext, NodeError, NodeResult, Outputs, PointCloud, PortSpec, PortType, Registry,
+    BuildContext, BuildError, DisparityMap, FloatMap, Flow, FrameInfo, Inputs, Metrics, Node,
+    NodeContext, NodeError, NodeResult, Outputs, PointCloud, PortSpec, PortType, Registry,
     StereoFrame, TypedPlugin,
 };
 use support::SupportPoint;
@@ -480,15 +480,6 @@ impl Node for ElasNode {
                 out.support.len()
             );
         }
-        let depth = FloatMap {
-            width: map.width,
-            height: map.height,
-            data: map
-                .data
-                .iter()
-                .map(|&d| calib.depth_from_disparity(d))
-                .collect(),
-        };
         let valid = map.data.iter().filter(|d| d.is_finite()).count();
         let density = 100.0 * valid as f64 / map.data.len().max(1) as f64;
         let support = PointCloud {
@@ -529,8 +520,9 @@ impl Node for ElasNode {
         ] {
             metrics.values.insert(format!("elas.ms.{k}"), v);
         }
-        outputs.put("disparity", DisparityMap { map, calib })?;
-        outputs.put("depth", DepthMap { map: depth, calib })?;
+        let disparity = DisparityMap { map, calib };
+        outputs.put("depth", disparity.to_depth())?;
+        outputs.put("disparity", disparity)?;
         outputs.put("support", support)?;
         outputs.put("metrics", metrics)?;
         Ok(Flow::Continue)

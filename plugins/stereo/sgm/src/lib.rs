@@ -6,9 +6,8 @@
 pub mod sgm;
 
 use misslam_framework::{
-    BuildContext, BuildError, DepthMap, DisparityMap, FloatMap, Flow, FrameInfo, Inputs, Node,
-    NodeContext, NodeError, NodeResult, Outputs, PortSpec, PortType, Registry, StereoFrame,
-    TypedPlugin,
+    BuildContext, BuildError, DisparityMap, FloatMap, Flow, FrameInfo, Inputs, Node, NodeContext,
+    NodeError, NodeResult, Outputs, PortSpec, PortType, Registry, StereoFrame, TypedPlugin,
 };
 
 /// Parameters of `depth.sgm`: those of the library.
@@ -59,18 +58,12 @@ impl Node for SgmNode {
     ) -> NodeResult<Flow> {
         let pair = inputs.get::<StereoFrame>("stereo")?;
         let map = self.disparity(pair).map_err(NodeError::msg)?;
-        let calib = pair.calib;
-        let depth = FloatMap {
-            width: map.width,
-            height: map.height,
-            data: map
-                .data
-                .iter()
-                .map(|&d| calib.depth_from_disparity(d))
-                .collect(),
+        let disparity = DisparityMap {
+            map,
+            calib: pair.calib,
         };
-        outputs.put("disparity", DisparityMap { map, calib })?;
-        outputs.put("depth", DepthMap { map: depth, calib })?;
+        outputs.put("depth", disparity.to_depth())?;
+        outputs.put("disparity", disparity)?;
         Ok(Flow::Continue)
     }
 }
