@@ -1,11 +1,11 @@
 //! What every feature node does around its detector: gray conversion with reused buffers, the
 //! border mask, both views of a stereo pair (on two threads), stereo matching to 3D keypoints,
-//! and the node's ports and per-frame body. A detector (ORB, SURF) implements [`Detector`]; its
-//! node holds a [`StereoExtractor`].
+//! and the whole node ([`FeatureNode`], its [`FeatureParams`] and [`ports`]). A detector (ORB,
+//! SURF) implements [`Detector`]; its crate only names the node and registers it.
 
 use misslam_framework::{
-    Descriptors, Features, Flow, Image, Inputs, Keypoint, Mask, Matches, NodeError, NodeResult,
-    Outputs, PortSpec, PortType, StereoFrame,
+    BuildError, Descriptors, Features, Flow, FrameInfo, Image, Inputs, Keypoint, Mask, Matches,
+    Node, NodeContext, NodeError, NodeResult, Outputs, PortSpec, PortType, StereoFrame,
 };
 
 use crate::retain_in_mask;
@@ -14,7 +14,7 @@ use crate::stereo::{stereo_points, GrayView, StereoParams, StereoScratch};
 /// A keypoint detector and descriptor on 8-bit gray images.
 pub trait Detector: Default + Send {
     /// Its parameters.
-    type Params: Sync;
+    type Params: Default + Send + Sync;
     /// One descriptor.
     type Descriptor: Copy + Send;
     /// Detects on a `width` x `height` gray image into `keypoints` and `descriptors` (cleared
@@ -28,6 +28,8 @@ pub trait Detector: Default + Send {
         keypoints: &mut Vec<Keypoint>,
         descriptors: &mut Vec<Self::Descriptor>,
     ) -> Result<(), String>;
+    /// Checks the parameters; the message names the field.
+    fn validate(params: &Self::Params) -> Result<(), String>;
     /// The descriptors as the framework's payload.
     fn wrap(d: Vec<Self::Descriptor>) -> Descriptors;
     /// Back from the payload (empty for the other kind).
@@ -215,4 +217,69 @@ pub fn ports(descriptors: &str) -> (Vec<PortSpec>, Vec<PortSpec>) {
             ),
         ],
     )
+}
+
+/// Parameters of a feature node: its detector's, the stereo matcher's, and threading.
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct FeatureParams<P: Default> {
+    /// The detector and descriptor.
+    pub detector: P,
+    /// Stereo matching of left keypoints against right keypoints (with a `stereo` input).
+    pub stereo: StereoParams,
+    /// Extract the left and right images on two threads.
+    pub parallel: bool,
+}
+
+impl<P: Default> Default for FeatureParams<P> {
+    fn default() -> Self {
+        FeatureParams {
+            detector: P::default(),
+            stereo: StereoParams::default(),
+            parallel: true,
+        }
+    }
+}
+
+/// A feature node around a detector: `features.orb` and `features.surf` are this node.
+pub struct FeatureNode<D: Detector> {
+    params: FeatureParams<D::Params>,
+    views: StereoExtractor<D>,
+}
+
+impl<D: Detector> FeatureNode<D> {
+    /// Builds the node after checking both parameter groups.
+    pub fn build(params: FeatureParams<D::Params>) -> Result<Self, BuildError> {
+        D::validate(&params.detector).map_err(|m| BuildError::param("detector", m))?;
+        params
+            .stereo
+            .validate()
+            .map_err(|m| BuildError::param("stereo", m))?;
+        Ok(FeatureNode {
+            params,
+            views: StereoExtractor::default(),
+        })
+    }
+
+    /// Features of a stereo pair: left keypoints with 3D points (NaN without a stereo match),
+    /// and the stereo matches (query = left, train = right).
+    pub fn stereo_features(&mut self, pair: &StereoFrame) -> Result<(Features, Matches), String> {
+        let p = &self.params;
+        self.views
+            .stereo_features(pair, &p.detector, &p.stereo, p.parallel)
+    }
+}
+
+impl<D: Detector> Node for FeatureNode<D> {
+    fn process(
+        &mut self,
+        _: &mut NodeContext,
+        _: FrameInfo,
+        inputs: &Inputs,
+        outputs: &mut Outputs,
+    ) -> NodeResult<Flow> {
+        let p = &self.params;
+        self.views
+            .process(inputs, outputs, &p.detector, &p.stereo, p.parallel)
+    }
 }

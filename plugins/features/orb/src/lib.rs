@@ -9,36 +9,13 @@ pub mod extract;
 pub mod fast;
 pub mod pyramid;
 
-use misslam_features_matching::extractor::{self, Detector, StereoExtractor};
-use misslam_features_matching::stereo::StereoParams;
-use misslam_framework::{
-    BuildContext, BuildError, Descriptors, Features, Flow, FrameInfo, Inputs, Keypoint, Matches,
-    Node, NodeContext, NodeResult, Outputs, Registry, StereoFrame, TypedPlugin,
-};
+use misslam_features_matching::extractor::{self, Detector, FeatureNode, FeatureParams};
+use misslam_framework::{BuildContext, BuildError, Descriptors, Keypoint, Registry, TypedPlugin};
 
 pub use extract::{Distribution, OrbParams};
 
-/// Parameters of `features.orb`.
-#[derive(Clone, Debug, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
-#[serde(deny_unknown_fields, default)]
-pub struct Params {
-    /// The detector and descriptor.
-    pub detector: OrbParams,
-    /// Stereo matching of left keypoints against right keypoints (with a `stereo` input).
-    pub stereo: StereoParams,
-    /// Extract the left and right images on two threads.
-    pub parallel: bool,
-}
-
-impl Default for Params {
-    fn default() -> Self {
-        Params {
-            detector: OrbParams::default(),
-            stereo: StereoParams::default(),
-            parallel: true,
-        }
-    }
-}
+/// Parameters of `features.orb`: `detector` ([`OrbParams`]), `stereo`, `parallel`.
+pub type Params = FeatureParams<OrbParams>;
 
 /// ORB as a [`Detector`] for the shared feature-node machinery.
 #[derive(Default)]
@@ -70,6 +47,10 @@ impl Detector for Detect {
         )
     }
 
+    fn validate(params: &OrbParams) -> Result<(), String> {
+        params.validate()
+    }
+
     fn wrap(d: Vec<[u64; 4]>) -> Descriptors {
         Descriptors::Binary256(d)
     }
@@ -83,49 +64,11 @@ impl Detector for Detect {
 }
 
 /// The node.
-pub struct OrbNode {
-    params: Params,
-    views: StereoExtractor<Detect>,
-}
-
-impl OrbNode {
-    /// Features of a stereo pair: left keypoints with 3D points (NaN without a stereo match),
-    /// and the stereo matches (query = left, train = right).
-    pub fn stereo_features(&mut self, pair: &StereoFrame) -> Result<(Features, Matches), String> {
-        let p = &self.params;
-        self.views
-            .stereo_features(pair, &p.detector, &p.stereo, p.parallel)
-    }
-}
-
-impl Node for OrbNode {
-    fn process(
-        &mut self,
-        _: &mut NodeContext,
-        _: FrameInfo,
-        inputs: &Inputs,
-        outputs: &mut Outputs,
-    ) -> NodeResult<Flow> {
-        let p = &self.params;
-        self.views
-            .process(inputs, outputs, &p.detector, &p.stereo, p.parallel)
-    }
-}
+pub type OrbNode = FeatureNode<Detect>;
 
 /// Builds the node.
 pub fn build(params: Params, _: &BuildContext) -> Result<OrbNode, BuildError> {
-    params
-        .detector
-        .validate()
-        .map_err(|m| BuildError::param("detector", m))?;
-    params
-        .stereo
-        .validate()
-        .map_err(|m| BuildError::param("stereo", m))?;
-    Ok(OrbNode {
-        params,
-        views: StereoExtractor::default(),
-    })
+    FeatureNode::build(params)
 }
 
 /// Registers `features.orb`.

@@ -5,36 +5,13 @@
 
 pub mod surf;
 
-use misslam_features_matching::extractor::{self, Detector, StereoExtractor};
-use misslam_features_matching::stereo::StereoParams;
-use misslam_framework::{
-    BuildContext, BuildError, Descriptors, Features, Flow, FrameInfo, Inputs, Keypoint, Matches,
-    Node, NodeContext, NodeResult, Outputs, Registry, StereoFrame, TypedPlugin,
-};
+use misslam_features_matching::extractor::{self, Detector, FeatureNode, FeatureParams};
+use misslam_framework::{BuildContext, BuildError, Descriptors, Keypoint, Registry, TypedPlugin};
 
 pub use surf::{DenseParams, SurfParams};
 
-/// Parameters of `features.surf`.
-#[derive(Clone, Debug, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
-#[serde(deny_unknown_fields, default)]
-pub struct Params {
-    /// The detector and descriptor (and dense SURF).
-    pub detector: SurfParams,
-    /// Stereo matching of left keypoints against right keypoints (with a `stereo` input).
-    pub stereo: StereoParams,
-    /// Extract the left and right images on two threads.
-    pub parallel: bool,
-}
-
-impl Default for Params {
-    fn default() -> Self {
-        Params {
-            detector: SurfParams::default(),
-            stereo: StereoParams::default(),
-            parallel: true,
-        }
-    }
-}
+/// Parameters of `features.surf`: `detector` ([`SurfParams`]), `stereo`, `parallel`.
+pub type Params = FeatureParams<SurfParams>;
 
 /// SURF as a [`Detector`] for the shared feature-node machinery.
 #[derive(Default)]
@@ -66,6 +43,10 @@ impl Detector for Detect {
         )
     }
 
+    fn validate(params: &SurfParams) -> Result<(), String> {
+        params.validate()
+    }
+
     fn wrap(d: Vec<[f32; 64]>) -> Descriptors {
         Descriptors::Float64(d)
     }
@@ -79,49 +60,11 @@ impl Detector for Detect {
 }
 
 /// The node.
-pub struct SurfNode {
-    params: Params,
-    views: StereoExtractor<Detect>,
-}
-
-impl SurfNode {
-    /// Features of a stereo pair: left keypoints with 3D points (NaN without a stereo match),
-    /// and the stereo matches (query = left, train = right).
-    pub fn stereo_features(&mut self, pair: &StereoFrame) -> Result<(Features, Matches), String> {
-        let p = &self.params;
-        self.views
-            .stereo_features(pair, &p.detector, &p.stereo, p.parallel)
-    }
-}
-
-impl Node for SurfNode {
-    fn process(
-        &mut self,
-        _: &mut NodeContext,
-        _: FrameInfo,
-        inputs: &Inputs,
-        outputs: &mut Outputs,
-    ) -> NodeResult<Flow> {
-        let p = &self.params;
-        self.views
-            .process(inputs, outputs, &p.detector, &p.stereo, p.parallel)
-    }
-}
+pub type SurfNode = FeatureNode<Detect>;
 
 /// Builds the node.
 pub fn build(params: Params, _: &BuildContext) -> Result<SurfNode, BuildError> {
-    params
-        .detector
-        .validate()
-        .map_err(|m| BuildError::param("detector", m))?;
-    params
-        .stereo
-        .validate()
-        .map_err(|m| BuildError::param("stereo", m))?;
-    Ok(SurfNode {
-        params,
-        views: StereoExtractor::default(),
-    })
+    FeatureNode::build(params)
 }
 
 /// Registers `features.surf`.
