@@ -299,8 +299,7 @@ fn run(command: Command) -> anyhow::Result<()> {
                 );
             }
             if let Some(path) = out {
-                std::fs::write(&path, serde_json::to_string_pretty(&rows)?)
-                    .with_context(|| format!("writing {}", path.display()))?;
+                write_json(&path, &rows)?;
             }
             Ok(())
         }
@@ -349,8 +348,7 @@ fn run(command: Command) -> anyhow::Result<()> {
                 );
             }
             if let Some(path) = out {
-                std::fs::write(&path, serde_json::to_string_pretty(&rows)?)
-                    .with_context(|| format!("writing {}", path.display()))?;
+                write_json(&path, &rows)?;
             }
             Ok(())
         }
@@ -408,8 +406,7 @@ fn run(command: Command) -> anyhow::Result<()> {
                 println!("SURF: {n} keypoints, detect+describe {ms:.2} ms (median of {repeat}, 1 thread)");
                 if let Some(path) = out {
                     let v = serde_json::json!({ "keypoints": n, "surf_ms": ms });
-                    std::fs::write(&path, v.to_string())
-                        .with_context(|| format!("writing {}", path.display()))?;
+                    write_json(&path, &v)?;
                 }
                 return Ok(());
             }
@@ -439,8 +436,7 @@ fn run(command: Command) -> anyhow::Result<()> {
                 );
             }
             if let Some(path) = out {
-                std::fs::write(&path, serde_json::to_string(&r)?)
-                    .with_context(|| format!("writing {}", path.display()))?;
+                write_json(&path, &r)?;
             }
             Ok(())
         }
@@ -468,8 +464,7 @@ fn run(command: Command) -> anyhow::Result<()> {
                 );
             }
             if let Some(path) = out {
-                std::fs::write(&path, serde_json::to_string_pretty(&rows)?)
-                    .with_context(|| format!("writing {}", path.display()))?;
+                write_json(&path, &rows)?;
             }
             Ok(())
         }
@@ -512,8 +507,7 @@ fn run(command: Command) -> anyhow::Result<()> {
                     "tracking.rpe_deg": s.rpe_deg,
                     "tracking.lost_pct": s.lost_pct,
                 });
-                std::fs::write(&path, serde_json::to_string_pretty(&v)?)
-                    .with_context(|| format!("writing {}", path.display()))?;
+                write_json(&path, &v)?;
             }
             Ok(())
         }
@@ -558,8 +552,7 @@ fn run(command: Command) -> anyhow::Result<()> {
             }
             if let Some(path) = out {
                 let json = serde_json::json!({ "frames": rows, "eval": summary });
-                std::fs::write(&path, serde_json::to_string_pretty(&json)?)
-                    .with_context(|| format!("writing {}", path.display()))?;
+                write_json(&path, &json)?;
             }
             Ok(())
         }
@@ -679,4 +672,10 @@ fn run(command: Command) -> anyhow::Result<()> {
             }
         }
     }
+}
+
+/// Writes `value` as pretty JSON to `path` (the `--out` of the benchmarks).
+fn write_json(path: &std::path::Path, value: &impl serde::Serialize) -> anyhow::Result<()> {
+    std::fs::write(path, serde_json::to_string_pretty(value)?)
+        .with_context(|| format!("writing {}", path.display()))
 }
