@@ -8,6 +8,7 @@
 #![allow(clippy::needless_range_loop)]
 
 pub mod decoupled;
+pub mod engine;
 pub mod field;
 pub mod graph;
 pub mod knn;
@@ -18,6 +19,7 @@ pub mod solver;
 pub mod system;
 
 pub use decoupled::{Boundary, DecoupledInfo, DecoupledParams, DecoupledSolver};
+pub use engine::{Engine, SolverKind};
 pub use field::DistanceField;
 pub use graph::{Binding, EdGraph, GraphParams, Sampling};
 pub use problem::{

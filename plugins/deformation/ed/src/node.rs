@@ -6,11 +6,11 @@
 //! the first depth map lifted to the world frame (one point per `model_stride` pixels). Nodes are
 //! sampled on it once; growth belongs to fusion.
 
-use crate::decoupled::{DecoupledParams, DecoupledSolver};
+use crate::decoupled::DecoupledParams;
+use crate::engine::{Engine, SolverKind};
 use crate::graph::{Binding, EdGraph, GraphParams};
 use crate::observe::{mesh_normals, scan_from_depth_into, visible_points};
 use crate::problem::{Intrinsics, ModelPoints, Problem, Scan, SolverParams};
-use crate::solver::{Info, SolveSet, Solver};
 use misslam_framework::nalgebra::{Isometry3, Point3, Vector3};
 use misslam_framework::{
     BuildContext, BuildError, DepthMap, Flow, FrameInfo, Inputs, Mesh, Metrics, Node, NodeContext,
@@ -87,11 +87,6 @@ impl Default for DecoupledNodeParams {
     }
 }
 
-enum Engine {
-    Batch(Box<Solver>),
-    Decoupled(Box<DecoupledSolver>, DecoupledParams),
-}
-
 struct Model {
     points: Vec<Vector3<f64>>,
     normals: Vec<Vector3<f64>>,
@@ -114,6 +109,7 @@ struct Scratch {
 pub struct EdNode {
     common: BatchParams,
     engine: Engine,
+    decoupled: DecoupledParams,
     model: Option<Model>,
     scratch: Scratch,
 }
@@ -333,29 +329,22 @@ impl EdNode {
         };
         let mut pose = prior_pose;
         let mut metrics = Metrics::default();
-        let info: Info = match &mut self.engine {
-            Engine::Batch(s) => {
-                let set = SolveSet::all(&model.graph, c.solver.optimize_pose);
-                s.solve(&mut model.graph, &mut pose, &problem, &set, &c.solver)
-                    .map_err(NodeError::msg)?
-            }
-            Engine::Decoupled(s, dp) => {
-                let d = s
-                    .solve(&mut model.graph, &mut pose, &problem, &c.solver, dp)
-                    .map_err(NodeError::msg)?;
-                metrics.values.insert("pr_nodes".into(), d.pr_nodes as f64);
-                metrics
-                    .values
-                    .insert("pi_solved".into(), d.pi_solved as f64);
-                d.combined()
-            }
-        };
-        if model.graph.warp.iter().flatten().any(|x| !x.is_finite()) {
-            model.graph.reset();
-            return Err(NodeError::msg(format!(
-                "the deformation solve of frame {} diverged; the warp was reset",
-                frame.index
-            )));
+        let (info, split) = self
+            .engine
+            .solve(
+                frame.index,
+                &mut model.graph,
+                &mut pose,
+                &problem,
+                &c.solver,
+                &self.decoupled,
+            )
+            .map_err(NodeError::msg)?;
+        if let Some(d) = split {
+            metrics.values.insert("pr_nodes".into(), d.pr_nodes as f64);
+            metrics
+                .values
+                .insert("pi_solved".into(), d.pi_solved as f64);
         }
         for (k, v) in [
             ("iterations", info.iterations as f64),
@@ -471,7 +460,8 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
             check(&p)?;
             Ok(EdNode {
                 common: p,
-                engine: Engine::Batch(Box::default()),
+                engine: Engine::new(SolverKind::Batch),
+                decoupled: DecoupledParams::default(),
                 model: None,
                 scratch: Scratch::default(),
             })
@@ -492,7 +482,13 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
                 visible_angle_deg: p.visible_angle_deg,
             };
             check(&common)?;
-            Ok(EdNode { common, engine: Engine::Decoupled(Box::default(), p.decoupled), model: None, scratch: Scratch::default() })
+            Ok(EdNode {
+                common,
+                engine: Engine::new(SolverKind::Decoupled),
+                decoupled: p.decoupled,
+                model: None,
+                scratch: Scratch::default(),
+            })
         },
     ))
 }

@@ -5,6 +5,7 @@
 use crate::graph::{Binding, EdGraph};
 use crate::problem::Intrinsics;
 use misslam_framework::nalgebra::{Isometry3, Point3, Vector3};
+use misslam_framework::Image;
 use rayon::prelude::*;
 
 /// Lifts depth (mm, NaN invalid, row-major) to camera-frame vertices and normals. A normal is the
@@ -111,9 +112,46 @@ pub fn visible_points(
         .collect()
 }
 
+/// The colour of pixel `i` of the left image (grey replicated; a tissue-like default without an
+/// image).
+pub fn color_at(img: Option<&Image>, i: usize) -> [u8; 3] {
+    match img {
+        Some(im) if im.channels == 3 && (i + 1) * 3 <= im.data.len() => {
+            [im.data[3 * i], im.data[3 * i + 1], im.data[3 * i + 2]]
+        }
+        Some(im) if im.channels == 1 && i < im.data.len() => [im.data[i]; 3],
+        _ => [200, 120, 110],
+    }
+}
+
+/// How much an observation's colour is trusted: the surface faces the scope (cosine of the view
+/// angle, the normal being in the camera frame) and the colour is saturated. Specular
+/// highlights, which a scope-mounted light puts exactly on the frontal views, are pale and lose
+/// to a vivid observation from another angle. Both fusion variants keep, per point, the colour of
+/// the best observation so far ("vivid texture").
+pub fn color_quality(normal_cam: [f32; 3], c: [u8; 3]) -> f32 {
+    let hi = c.iter().copied().max().unwrap_or(0) as f32;
+    let lo = c.iter().copied().min().unwrap_or(0) as f32;
+    let saturation = if hi > 0.0 { (hi - lo) / hi } else { 0.0 };
+    (-normal_cam[2]).max(0.0) * saturation
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_vivid_oblique_colour_beats_a_frontal_highlight() {
+        let frontal = [0.0, 0.0, -1.0];
+        let oblique = [0.0, 0.5, -0.866];
+        let highlight = [250, 235, 230];
+        let tissue = [180, 70, 60];
+        assert!(color_quality(oblique, tissue) > color_quality(frontal, highlight));
+        // Facing away: no trust at all.
+        assert_eq!(color_quality([0.0, 0.0, 1.0], tissue), 0.0);
+        // Among equally vivid colours, the frontal one wins.
+        assert!(color_quality(frontal, tissue) > color_quality(oblique, tissue));
+    }
 
     #[test]
     fn a_tilted_plane_gives_its_points_and_normal_and_edges_are_invalid() {

@@ -17,11 +17,13 @@
 //! Outputs the live model (world frame), the graph, the refined pose and the frame's figures.
 #![deny(missing_docs)]
 
-use misslam_deformation_ed::decoupled::{DecoupledParams, DecoupledSolver};
+use misslam_deformation_ed::decoupled::DecoupledParams;
+use misslam_deformation_ed::engine::Engine;
 use misslam_deformation_ed::graph::{Binding, EdGraph, GraphParams};
-use misslam_deformation_ed::observe::{scan_from_depth_into, visible_points};
+use misslam_deformation_ed::observe::{
+    color_at, color_quality, scan_from_depth_into, visible_points,
+};
 use misslam_deformation_ed::problem::{Intrinsics, ModelPoints, Problem, Scan, SolverParams};
-use misslam_deformation_ed::solver::{SolveSet, Solver};
 use misslam_framework::nalgebra::{Isometry3, Matrix3, Point3, Vector3};
 use misslam_framework::{
     BuildContext, BuildError, DepthMap, Flow, FrameInfo, Image, Inputs, Metrics, Node, NodeContext,
@@ -29,17 +31,7 @@ use misslam_framework::{
     TrackingState, TypedPlugin,
 };
 
-/// Which ED solver runs.
-#[derive(
-    Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, schemars::JsonSchema,
-)]
-#[serde(rename_all = "snake_case")]
-pub enum SolverKind {
-    /// All nodes at once.
-    Batch,
-    /// PR then PI (the thesis's two-step solver).
-    Decoupled,
-}
+pub use misslam_deformation_ed::engine::SolverKind;
 
 /// Parameters of `fusion.surfel`.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
@@ -202,11 +194,6 @@ impl Model {
     }
 }
 
-enum Engine {
-    Batch(Box<Solver>),
-    Decoupled(Box<DecoupledSolver>),
-}
-
 /// The node.
 pub struct SurfelNode {
     p: Params,
@@ -215,27 +202,6 @@ pub struct SurfelNode {
     graph: Option<EdGraph>,
     vertices: Vec<[f32; 3]>,
     scan_normals: Vec<[f32; 3]>,
-}
-
-fn color_at(img: Option<&Image>, i: usize) -> [u8; 3] {
-    match img {
-        Some(im) if im.channels == 3 && (i + 1) * 3 <= im.data.len() => {
-            [im.data[3 * i], im.data[3 * i + 1], im.data[3 * i + 2]]
-        }
-        Some(im) if im.channels == 1 && i < im.data.len() => [im.data[i]; 3],
-        _ => [200, 120, 110],
-    }
-}
-
-/// How much an observation's colour is trusted: the surface faces the scope (cosine of the view
-/// angle, the normal being in the camera frame) and the colour is saturated. Specular
-/// highlights, which a scope-mounted light puts exactly on the frontal views, are pale and lose
-/// to a vivid observation from another angle.
-fn color_quality(normal_cam: [f32; 3], c: [u8; 3]) -> f32 {
-    let hi = c.iter().copied().max().unwrap_or(0) as f32;
-    let lo = c.iter().copied().min().unwrap_or(0) as f32;
-    let saturation = if hi > 0.0 { (hi - lo) / hi } else { 0.0 };
-    (-normal_cam[2]).max(0.0) * saturation
 }
 
 fn v3(p: [f32; 3]) -> Vector3<f64> {
@@ -372,30 +338,17 @@ impl SurfelNode {
                 correspondences: &[],
                 pose_prior: pose,
             };
-            let info = match &mut self.engine {
-                Engine::Batch(s) => {
-                    let set = SolveSet::all(graph, self.p.solver.optimize_pose);
-                    s.solve(graph, &mut pose, &problem, &set, &self.p.solver)
-                        .map_err(NodeError::msg)?
-                }
-                Engine::Decoupled(s) => s
-                    .solve(
-                        graph,
-                        &mut pose,
-                        &problem,
-                        &self.p.solver,
-                        &self.p.decoupled,
-                    )
-                    .map_err(NodeError::msg)?
-                    .combined(),
-            };
-            if graph.warp.iter().flatten().any(|x| !x.is_finite()) {
-                graph.reset();
-                return Err(NodeError::msg(format!(
-                    "the deformation solve of frame {} diverged; the warp was reset",
-                    frame.index
-                )));
-            }
+            let (info, _) = self
+                .engine
+                .solve(
+                    frame.index,
+                    graph,
+                    &mut pose,
+                    &problem,
+                    &self.p.solver,
+                    &self.p.decoupled,
+                )
+                .map_err(NodeError::msg)?;
             metrics
                 .values
                 .insert("fusion.visible".into(), visible.len() as f64);
@@ -601,10 +554,7 @@ impl Node for SurfelNode {
 /// Builds the node.
 pub fn build(p: Params, _: &BuildContext) -> Result<SurfelNode, BuildError> {
     p.check()?;
-    let engine = match p.solver_kind {
-        SolverKind::Batch => Engine::Batch(Box::default()),
-        SolverKind::Decoupled => Engine::Decoupled(Box::default()),
-    };
+    let engine = Engine::new(p.solver_kind);
     Ok(SurfelNode {
         p,
         engine,
@@ -650,19 +600,6 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn a_vivid_oblique_colour_beats_a_frontal_highlight() {
-        let frontal = [0.0, 0.0, -1.0];
-        let oblique = [0.0, 0.5, -0.866];
-        let highlight = [250, 235, 230];
-        let tissue = [180, 70, 60];
-        assert!(color_quality(oblique, tissue) > color_quality(frontal, highlight));
-        // Facing away: no trust at all.
-        assert_eq!(color_quality([0.0, 0.0, 1.0], tissue), 0.0);
-        // Among equally vivid colours, the frontal one wins.
-        assert!(color_quality(frontal, tissue) > color_quality(oblique, tissue));
-    }
 
     #[test]
     fn local_inverses_undo_an_affine_warp() {
