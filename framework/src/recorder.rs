@@ -8,9 +8,10 @@
 use std::collections::HashMap;
 use std::path::PathBuf;
 use std::str::FromStr;
+use std::sync::Arc;
 
 use crate::graph::Graph;
-use crate::payload::{Payload, StereoCalib};
+use crate::payload::{Mesh, Payload, StereoCalib};
 
 /// Where the recording goes (`--rerun`).
 #[derive(Clone, Debug, PartialEq, Eq, Default)]
@@ -66,6 +67,9 @@ pub struct RecorderError(String);
 pub struct Recorder {
     rec: rerun::RecordingStream,
     trajectories: HashMap<String, Vec<[f32; 3]>>,
+    /// The mesh last logged at each path, held so that an output repeated frame after frame (the
+    /// same `Arc`, e.g. a static template) is logged once: Rerun shows the latest value anyway.
+    meshes: HashMap<String, Arc<Mesh>>,
 }
 
 impl Recorder {
@@ -90,6 +94,7 @@ impl Recorder {
         Ok(Some(Recorder {
             rec,
             trajectories: HashMap::new(),
+            meshes: HashMap::new(),
         }))
     }
 
@@ -131,6 +136,12 @@ impl Recorder {
 
     /// Logs a payload at `path` with the archetypes that fit it.
     pub fn log_payload(&mut self, path: &str, payload: &Payload) -> Result<(), RecorderError> {
+        if let Payload::Mesh(mesh) = payload {
+            if self.meshes.get(path).is_some_and(|m| Arc::ptr_eq(m, mesh)) {
+                return Ok(());
+            }
+            self.meshes.insert(path.to_string(), mesh.clone());
+        }
         let rec = &self.rec;
         match payload {
             Payload::Stereo(s) => {
@@ -380,5 +391,38 @@ mod tests {
             .parse::<RerunMode>()
             .unwrap_err()
             .contains("save:PATH.rrd"));
+    }
+
+    #[test]
+    fn a_mesh_repeated_as_the_same_arc_is_logged_once() {
+        let (rec, storage) = rerun::RecordingStreamBuilder::new("misslam-test")
+            .memory()
+            .unwrap();
+        let mut r = Recorder {
+            rec,
+            trajectories: HashMap::new(),
+            meshes: HashMap::new(),
+        };
+        let mesh = Arc::new(Mesh {
+            vertices: vec![[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]],
+            normals: None,
+            colors: None,
+            triangles: vec![[0, 1, 2]],
+        });
+        let count = |r: &mut Recorder, frame: u64, p: &Payload| {
+            r.begin_frame(frame, None);
+            r.log_payload("a/mesh", p).unwrap();
+            storage.take().len()
+        };
+        let p = Payload::Mesh(mesh.clone());
+        assert!(count(&mut r, 0, &p) > 0);
+        assert_eq!(count(&mut r, 1, &p), 0, "the same Arc was logged again");
+        // Equal content in a new Arc is a new value: logged.
+        let q = Payload::Mesh(Arc::new((*mesh).clone()));
+        assert!(count(&mut r, 2, &q) > 0);
+        // The same Arc at another path is logged there.
+        r.begin_frame(3, None);
+        r.log_payload("b/mesh", &q).unwrap();
+        assert!(!storage.take().is_empty());
     }
 }

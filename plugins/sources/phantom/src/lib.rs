@@ -421,6 +421,22 @@ impl Phantom {
         &self.rest
     }
 
+    /// Rest normals of the mesh vertices.
+    pub fn rest_normals(&self) -> &[[f32; 3]] {
+        &self.rest_normals
+    }
+
+    /// The rest surface (world frame at t = 0) with normals and no colour: the "pre-operative"
+    /// model of the template path, as a CT scan would give it.
+    pub fn rest_mesh(&self) -> Mesh {
+        Mesh {
+            vertices: self.rest.clone(),
+            normals: Some(self.rest_normals.clone()),
+            colors: None,
+            triangles: self.triangles.clone(),
+        }
+    }
+
     /// Mesh triangles (shared by the rest and deformed meshes).
     pub fn triangles(&self) -> &[[u32; 3]] {
         &self.triangles
@@ -766,6 +782,7 @@ impl Phantom {
 /// The node.
 pub struct PhantomNode {
     phantom: Phantom,
+    rest: Arc<Mesh>,
 }
 
 impl Node for PhantomNode {
@@ -787,6 +804,7 @@ impl Node for PhantomNode {
         out.put("disparity_gt", f.disparity)?;
         out.put("pose_gt", f.pose)?;
         out.put("mesh_gt", f.mesh)?;
+        out.put_arc("mesh_rest", self.rest.clone())?;
         out.put("rest_points_gt", f.rest_points)?;
         Ok(Flow::Continue)
     }
@@ -823,6 +841,11 @@ pub fn outputs() -> Vec<PortSpec> {
             "the tissue surface of this instant, world frame",
         ),
         PortSpec::new(
+            "mesh_rest",
+            PortType::Mesh,
+            "the undeformed surface (world frame, no colour), the same every frame: a pre-operative template",
+        ),
+        PortSpec::new(
             "rest_points_gt",
             PortType::VertexMap,
             "per left pixel, the rest-shape point it sees",
@@ -839,7 +862,8 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
         outputs(),
         |p: Params, ctx: &BuildContext| {
             let phantom = Phantom::new(p, ctx.seed).map_err(BuildError::Failed)?;
-            Ok(PhantomNode { phantom })
+            let rest = Arc::new(phantom.rest_mesh());
+            Ok(PhantomNode { phantom, rest })
         },
     ))
 }
