@@ -30,6 +30,7 @@ pub const BUILTIN: &[RegisterFn] = &[
     misslam_features_surf::register,
     misslam_tracking_stereo::register,
     misslam_fusion_surfel::register,
+    misslam_fusion_template::register,
 ];
 
 /// Every built-in plugin; an id clash is an error naming both.
@@ -73,6 +74,7 @@ mod tests {
                 "features.orb",
                 "features.surf",
                 "fusion.surfel",
+                "fusion.template",
                 "image.gray",
                 "sink.files",
                 "source.phantom",

@@ -1,9 +1,15 @@
 //! The distance field function (DFF) of the template path (method.md 5.2): a voxel volume around a
 //! depth scan whose voxels hold the signed distance to the observed surface (along the observed
-//! normal of the nearest scan point, truncated). Model-to-scan distance is then a trilinear lookup
-//! and its gradient the data term's Jacobian, with no per-iteration correspondence search.
+//! normal, truncated). Model-to-scan distance is then a trilinear lookup and its gradient the data
+//! term's Jacobian, with no per-iteration correspondence search.
+//!
+//! Two constructions: [`DistanceField::from_maps`] projects each voxel into the scan's vertex and
+//! normal maps (O(voxels), the per-frame field, also on the GPU); [`DistanceField::from_scan`]
+//! takes the nearest scan point of an unordered point set (a search per voxel, for scans that are
+//! not maps).
 
 use crate::knn::GridIndex;
+use crate::problem::Intrinsics;
 use misslam_framework::nalgebra::Vector3;
 use rayon::prelude::*;
 
@@ -34,11 +40,7 @@ impl DistanceField {
         truncation: f64,
         max_voxels: usize,
     ) -> Result<Self, String> {
-        if !(voxel > 0.0 && truncation > 0.0) {
-            return Err(format!(
-                "voxel ({voxel}) and truncation ({truncation}) must be positive"
-            ));
-        }
+        let (lo, dims) = Self::scan_box(points, normals, voxel, truncation, max_voxels)?;
         let mut pts = Vec::new();
         let mut nrm = Vec::new();
         for (p, n) in points.iter().zip(normals) {
@@ -47,28 +49,7 @@ impl DistanceField {
                 nrm.push(Vector3::new(n[0] as f64, n[1] as f64, n[2] as f64));
             }
         }
-        if pts.is_empty() {
-            return Err("the scan has no valid point with a normal".into());
-        }
-        let mut lo = Vector3::repeat(f64::INFINITY);
-        let mut hi = Vector3::repeat(f64::NEG_INFINITY);
-        for p in &pts {
-            lo = lo.inf(p);
-            hi = hi.sup(p);
-        }
-        lo -= Vector3::repeat(truncation);
-        hi += Vector3::repeat(truncation);
-        let mut dims = [0usize; 3];
-        for a in 0..3 {
-            dims[a] = ((hi[a] - lo[a]) / voxel).ceil() as usize + 1;
-        }
-        let total = dims[0].saturating_mul(dims[1]).saturating_mul(dims[2]);
-        if total > max_voxels {
-            return Err(format!(
-                "the distance field would need {}x{}x{} = {total} voxels (max_voxels {max_voxels}): raise voxel or max_voxels",
-                dims[0], dims[1], dims[2]
-            ));
-        }
+        let total = dims[0] * dims[1] * dims[2];
         let index = GridIndex::build(&pts, truncation.max(voxel));
         let mut values = vec![f32::NAN; total];
         values
@@ -86,6 +67,98 @@ impl DistanceField {
             });
         Ok(DistanceField {
             origin: lo,
+            voxel,
+            dims,
+            values,
+            truncation,
+        })
+    }
+
+    /// The box a scan's field covers: its valid points (finite vertex and normal) padded by
+    /// `truncation`, as (origin, dims). Fails on an empty scan or past `max_voxels`.
+    pub fn scan_box(
+        vertices: &[[f32; 3]],
+        normals: &[[f32; 3]],
+        voxel: f64,
+        truncation: f64,
+        max_voxels: usize,
+    ) -> Result<(Vector3<f64>, [usize; 3]), String> {
+        if !(voxel > 0.0 && truncation > 0.0) {
+            return Err(format!(
+                "voxel ({voxel}) and truncation ({truncation}) must be positive"
+            ));
+        }
+        let mut lo = [f32::INFINITY; 3];
+        let mut hi = [f32::NEG_INFINITY; 3];
+        for (p, n) in vertices.iter().zip(normals) {
+            if p.iter().chain(n.iter()).all(|c| c.is_finite()) {
+                for a in 0..3 {
+                    lo[a] = lo[a].min(p[a]);
+                    hi[a] = hi[a].max(p[a]);
+                }
+            }
+        }
+        if lo[0] > hi[0] {
+            return Err("the scan has no valid point with a normal".into());
+        }
+        let lo =
+            Vector3::new(lo[0] as f64, lo[1] as f64, lo[2] as f64) - Vector3::repeat(truncation);
+        let hi =
+            Vector3::new(hi[0] as f64, hi[1] as f64, hi[2] as f64) + Vector3::repeat(truncation);
+        let mut dims = [0usize; 3];
+        for a in 0..3 {
+            dims[a] = ((hi[a] - lo[a]) / voxel).ceil() as usize + 1;
+        }
+        let total = dims[0].saturating_mul(dims[1]).saturating_mul(dims[2]);
+        if total > max_voxels {
+            return Err(format!(
+                "the distance field would need {}x{}x{} = {total} voxels (max_voxels {max_voxels}): raise voxel or max_voxels",
+                dims[0], dims[1], dims[2]
+            ));
+        }
+        Ok((lo, dims))
+    }
+
+    /// Builds the field of a scan given as vertex and normal maps (camera frame, row-major, NaN
+    /// invalid) by projection, the way the DFF of the template path is built every frame: each
+    /// voxel centre c is projected into the maps (nearest pixel); with q and n a pixel's point and
+    /// normal, the voxel holds the mean of n . (c - q) over the pixels of the (2 `window` + 1)^2
+    /// block around the projection where that is within `truncation` and c lies within twice
+    /// `truncation` of q, else NaN (unknown). A window about the voxel's footprint in pixels
+    /// averages the scan's noise the way a volumetric field does. O(voxels) with no search, and the same
+    /// arithmetic (f32) as the WGSL kernel `shaders/fusion/dff.wgsl`, so the GPU field
+    /// matches this one.
+    pub fn from_maps(
+        vertices: &[[f32; 3]],
+        normals: &[[f32; 3]],
+        k: &Intrinsics,
+        voxel: f64,
+        truncation: f64,
+        window: u32,
+        max_voxels: usize,
+    ) -> Result<Self, String> {
+        let (w, h) = (k.width as usize, k.height as usize);
+        if vertices.len() != w * h || normals.len() != w * h {
+            return Err(format!(
+                "the vertex and normal maps have {} and {} entries for {w}x{h} pixels",
+                vertices.len(),
+                normals.len()
+            ));
+        }
+        let (origin, dims) = Self::scan_box(vertices, normals, voxel, truncation, max_voxels)?;
+        let q = ProjectiveField::new(origin, voxel, truncation, k, window);
+        let mut values = vec![f32::NAN; dims[0] * dims[1] * dims[2]];
+        values
+            .par_chunks_mut(dims[0])
+            .enumerate()
+            .for_each(|(row, out)| {
+                let (y, z) = (row % dims[1], row / dims[1]);
+                for (x, v) in out.iter_mut().enumerate() {
+                    *v = q.value([x as u32, y as u32, z as u32], vertices, normals);
+                }
+            });
+        Ok(DistanceField {
+            origin,
             voxel,
             dims,
             values,
@@ -161,9 +234,140 @@ impl DistanceField {
     }
 }
 
+/// The per-voxel arithmetic of [`DistanceField::from_maps`], in f32 as on the GPU.
+#[derive(Clone, Copy, Debug)]
+pub struct ProjectiveField {
+    /// Voxel (0, 0, 0) centre.
+    pub origin: [f32; 3],
+    /// Voxel side.
+    pub voxel: f32,
+    /// Truncation.
+    pub truncation: f32,
+    /// fx, fy, cx, cy.
+    pub k: [f32; 4],
+    /// Map width and height.
+    pub size: [u32; 2],
+    /// Half-size of the pixel block averaged per voxel (0: the nearest pixel only).
+    pub window: u32,
+}
+
+impl ProjectiveField {
+    /// The constants of a field.
+    pub fn new(
+        origin: Vector3<f64>,
+        voxel: f64,
+        truncation: f64,
+        k: &Intrinsics,
+        window: u32,
+    ) -> Self {
+        ProjectiveField {
+            origin: [origin.x as f32, origin.y as f32, origin.z as f32],
+            voxel: voxel as f32,
+            truncation: truncation as f32,
+            k: [k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32],
+            size: [k.width, k.height],
+            window,
+        }
+    }
+
+    /// The value of voxel `ijk` (NaN unknown): the mean of n_i . (c - q_i) over the valid pixels
+    /// i of the (2 window + 1)^2 block around c's projection (a pixel is valid with a finite point
+    /// and normal, |n_i . (c - q_i)| <= truncation and |c - q_i| <= 2 truncation).
+    #[inline]
+    pub fn value(&self, ijk: [u32; 3], vertices: &[[f32; 3]], normals: &[[f32; 3]]) -> f32 {
+        let c = [0, 1, 2].map(|a| self.origin[a] + ijk[a] as f32 * self.voxel);
+        if c[2] <= 0.0 {
+            return f32::NAN;
+        }
+        let u = (self.k[0] * c[0] / c[2] + self.k[2] + 0.5).floor();
+        let v = (self.k[1] * c[1] / c[2] + self.k[3] + 0.5).floor();
+        let (w, h) = (self.size[0] as i64, self.size[1] as i64);
+        if !(u >= 0.0 && v >= 0.0 && u < w as f32 && v < h as f32) {
+            return f32::NAN;
+        }
+        let (u, v, r) = (u as i64, v as i64, self.window as i64);
+        let t = self.truncation;
+        let (mut sum, mut count) = (0f32, 0u32);
+        for y in (v - r).max(0)..=(v + r).min(h - 1) {
+            for x in (u - r).max(0)..=(u + r).min(w - 1) {
+                let i = (y * w + x) as usize;
+                let (q, n) = (vertices[i], normals[i]);
+                if !q.iter().chain(n.iter()).all(|x| x.is_finite()) {
+                    continue;
+                }
+                let d = [c[0] - q[0], c[1] - q[1], c[2] - q[2]];
+                let s = n[0] * d[0] + n[1] * d[1] + n[2] * d[2];
+                let r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+                if s.abs() <= t && r2 <= 4.0 * t * t {
+                    sum += s;
+                    count += 1;
+                }
+            }
+        }
+        if count > 0 {
+            sum / count as f32
+        } else {
+            f32::NAN
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_projective_field_of_a_tilted_plane_is_its_signed_distance() {
+        // The plane z = 60 + 0.3 x + 0.1 y rendered as depth, lifted to maps.
+        let k = Intrinsics {
+            fx: 200.0,
+            fy: 200.0,
+            cx: 40.0,
+            cy: 30.0,
+            width: 80,
+            height: 60,
+        };
+        let (a, b, c0) = (0.3, 0.1, 60.0);
+        let mut depth = vec![0f32; 80 * 60];
+        for (i, d) in depth.iter_mut().enumerate() {
+            let (x, y) = (
+                ((i % 80) as f64 - k.cx) / k.fx,
+                ((i / 80) as f64 - k.cy) / k.fy,
+            );
+            // z = c0 + a x z + b y z.
+            *d = (c0 / (1.0 - a * x - b * y)) as f32;
+        }
+        let (v, n) = crate::observe::scan_from_depth(&depth, &k, 5.0);
+        let f = DistanceField::from_maps(&v, &n, &k, 0.5, 3.0, 0, 10_000_000).unwrap();
+        // The unit normal towards the camera and the signed distance of a point.
+        let nrm = Vector3::new(a, b, -1.0).normalize();
+        let dist = |p: &Vector3<f64>| nrm.dot(&(p - Vector3::new(0.0, 0.0, c0)));
+        let mut checked = 0;
+        for (x, y, off) in [
+            (0.0, 0.0, 0.0),
+            (2.0, -1.5, 1.2),
+            (-3.0, 2.0, -2.0),
+            (1.0, 1.0, 0.4),
+        ] {
+            let on = Vector3::new(x, y, c0 + a * x + b * y);
+            let p = on + nrm * off;
+            let (d, g) = f.sample(&p).unwrap();
+            assert!((d - dist(&p)).abs() < 1e-3, "{p:?}: {d} vs {}", dist(&p));
+            assert!((g - nrm).norm() < 1e-3, "{g:?}");
+            checked += 1;
+        }
+        assert_eq!(checked, 4);
+        // Beyond the truncation, and outside the image, nothing is known.
+        let far = Vector3::new(0.0, 0.0, c0) + nrm * 4.5;
+        assert!(f.sample(&far).is_none());
+        let err = DistanceField::from_maps(&v, &n[1..], &k, 0.5, 3.0, 0, 1000).unwrap_err();
+        assert!(err.contains("entries"), "{err}");
+        let err = DistanceField::from_maps(&v, &n, &k, 0.01, 3.0, 0, 1000).unwrap_err();
+        assert!(err.contains("max_voxels"), "{err}");
+        let nan = vec![[f32::NAN; 3]; 80 * 60];
+        let err = DistanceField::from_maps(&nan, &nan, &k, 0.5, 3.0, 0, 1000).unwrap_err();
+        assert!(err.contains("no valid point"), "{err}");
+    }
 
     #[test]
     fn a_plane_scan_gives_the_signed_distance_and_its_gradient() {

@@ -1,0 +1,821 @@
+//! `fusion.template`: the template-based model (method.md 5.2). A pre-operative surface (CT, or
+//! any mesh: OBJ, PLY, glTF from `template_path`, or a `template` port such as the phantom's
+//! rest mesh) is placed once by a given pose, optionally refined by rigid ICP against the first
+//! scan, and bound to an embedded deformation graph. Per frame:
+//!
+//! 1. lift the depth to vertex and normal maps;
+//! 2. build the distance field function (DFF) of the scan: a truncated signed-distance volume
+//!    around it (`data_term = "dff"`, the thesis's method), or keep the maps for projective
+//!    point-to-plane association (`data_term = "projective"`, the back-projection baseline of the
+//!    thesis's Table 3.1);
+//! 3. select the visible template vertices and solve the ED warp on them (batch or decoupled),
+//!    with the tracker's pose as prior; unseen parts follow as rigidly as the graph allows;
+//! 4. colour the deformed template from the left image, keeping per vertex the colour of the
+//!    most frontal and saturated observation.
+//!
+//! Outputs the deformed template (world frame, coloured), the graph, the pose, the visible
+//! vertices, the field's zero level and the frame's figures.
+#![deny(missing_docs)]
+
+pub mod align;
+pub mod gpu;
+
+use align::{align_to_field, AlignOptions};
+use gpu::DffKernel;
+use misslam_deformation_ed::decoupled::DecoupledParams;
+use misslam_deformation_ed::engine::{Engine, SolverKind};
+use misslam_deformation_ed::graph::{Binding, EdGraph, GraphParams};
+use misslam_deformation_ed::observe::{
+    color_at, color_quality, mesh_normals, scan_from_depth_into, visible_points,
+};
+use misslam_deformation_ed::problem::{Intrinsics, ModelPoints, Problem, Scan, SolverParams};
+use misslam_deformation_ed::DistanceField;
+use misslam_framework::nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+use misslam_framework::{
+    BuildContext, BuildError, DepthMap, Device, Flow, FrameInfo, GpuContext, Image, Inputs, Mesh,
+    Metrics, Node, NodeContext, NodeError, NodeResult, Outputs, PointCloud, PortSpec, PortType,
+    Pose, Registry, StereoFrame, TrackingState, TypedPlugin,
+};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+
+/// The data term that pulls the template onto the scan.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum DataTerm {
+    /// Distance field function: trilinear lookup of a truncated signed-distance volume built
+    /// from the scan; no correspondence search (the thesis's method).
+    #[default]
+    Dff,
+    /// Back-projection: each vertex is projected into the depth map and associated with the
+    /// scan point at that pixel, point-to-plane, re-associated every iteration (the baseline).
+    Projective,
+}
+
+/// How the template is placed on the first frame.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum AlignMode {
+    /// The given placement only (`translation_mm`, `rotation_deg`).
+    #[default]
+    Given,
+    /// The given placement refined by rigid ICP against the first scan's distance field.
+    Icp,
+}
+
+/// The one-time rigid alignment of the template.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct AlignParams {
+    /// "given" or "icp".
+    pub mode: AlignMode,
+    /// world_from_template translation, mm (applied after the rotation).
+    pub translation_mm: [f64; 3],
+    /// world_from_template rotation as x, y, z Euler angles (roll, pitch, yaw), degrees.
+    pub rotation_deg: [f64; 3],
+    /// ICP: truncation of the alignment's distance field, mm; the given placement must bring
+    /// the template within about this distance of the scan.
+    pub truncation_mm: f64,
+    /// ICP: voxel side of the alignment's distance field, mm.
+    pub voxel_mm: f64,
+    /// ICP: Gauss-Newton iterations at most.
+    pub iterations: usize,
+    /// ICP: Huber scale, mm (template parts the scan does not see count less beyond it).
+    pub huber_mm: f64,
+}
+
+impl Default for AlignParams {
+    fn default() -> Self {
+        AlignParams {
+            mode: AlignMode::Given,
+            translation_mm: [0.0; 3],
+            rotation_deg: [0.0; 3],
+            truncation_mm: 10.0,
+            voxel_mm: 1.0,
+            iterations: 30,
+            huber_mm: 1.0,
+        }
+    }
+}
+
+/// The per-frame distance field function.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct FieldParams {
+    /// Voxel side, mm.
+    pub voxel_mm: f64,
+    /// Truncation, mm: voxels farther than this from every scan point are unknown, and a vertex
+    /// there has no data term this frame.
+    pub truncation_mm: f64,
+    /// Refuse a scan whose field would need more voxels than this (a depth outlier far away
+    /// stretches the box): the frame fails with a message instead of exhausting memory.
+    pub max_voxels: usize,
+    /// Half-size, in pixels, of the block of scan pixels averaged into each voxel (0: the
+    /// nearest pixel only); about half the voxel's footprint (voxel * fx / depth / 2) smooths the
+    /// scan's noise without blurring its shape.
+    pub window_px: u32,
+    /// Where the field is built: "cpu", "gpu" (an error without an adapter) or "auto".
+    pub device: Device,
+}
+
+impl Default for FieldParams {
+    fn default() -> Self {
+        FieldParams {
+            voxel_mm: 1.0,
+            truncation_mm: 5.0,
+            max_voxels: 16_000_000,
+            window_px: 0,
+            device: Device::Cpu,
+        }
+    }
+}
+
+/// Parameters of `fusion.template`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// The pre-operative mesh (OBJ or PLY in mm, glTF in metres), relative to the working
+    /// directory; without it the `template` input is read on the first frame.
+    pub template_path: Option<PathBuf>,
+    /// "dff" (distance field) or "projective" (back-projection).
+    pub data_term: DataTerm,
+    /// The distance field of each frame (with `data_term = "dff"`).
+    pub field: FieldParams,
+    /// The one-time rigid alignment.
+    pub align: AlignParams,
+    /// Deformation graph: spacing (mm), neighbours, sampling.
+    pub graph: GraphParams,
+    /// Energy weights and solver options (`weights.field` weighs the DFF term, `weights.data`
+    /// the projective one).
+    pub solver: SolverParams,
+    /// "batch" or "decoupled".
+    pub solver_kind: SolverKind,
+    /// The decoupled split (with `solver_kind = "decoupled"`).
+    pub decoupled: DecoupledParams,
+    /// Depth step (mm) to a neighbour above which a pixel gets no normal (occlusion edge).
+    pub normal_max_step_mm: f32,
+    /// epsilon_dv: a vertex is visible when the scan point it projects to is this close, mm.
+    pub visible_distance_mm: f64,
+    /// epsilon_nv: and its normal within this angle of the scan's, degrees.
+    pub visible_angle_deg: f64,
+    /// Colour the template from the left image (when the `stereo` input is connected).
+    pub color: bool,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params {
+            template_path: None,
+            data_term: DataTerm::Dff,
+            field: FieldParams::default(),
+            align: AlignParams::default(),
+            graph: GraphParams::default(),
+            solver: SolverParams::default(),
+            solver_kind: SolverKind::Decoupled,
+            decoupled: DecoupledParams::default(),
+            normal_max_step_mm: 3.0,
+            visible_distance_mm: 5.0,
+            visible_angle_deg: 60.0,
+            color: true,
+        }
+    }
+}
+
+fn positive(v: f64, field: &str) -> Result<(), BuildError> {
+    if v.is_finite() && v > 0.0 {
+        Ok(())
+    } else {
+        Err(BuildError::param(field, format!("must be > 0, got {v}")))
+    }
+}
+
+impl Params {
+    fn check(&self) -> Result<(), BuildError> {
+        self.graph
+            .validate()
+            .map_err(|m| BuildError::param("graph", m))?;
+        self.solver
+            .validate()
+            .map_err(|m| BuildError::param("solver", m))?;
+        positive(self.field.voxel_mm, "field.voxel_mm")?;
+        positive(self.field.truncation_mm, "field.truncation_mm")?;
+        if self.field.max_voxels == 0 {
+            return Err(BuildError::param("field.max_voxels", "must be at least 1"));
+        }
+        positive(self.align.truncation_mm, "align.truncation_mm")?;
+        positive(self.align.voxel_mm, "align.voxel_mm")?;
+        positive(self.align.huber_mm, "align.huber_mm")?;
+        if self.align.iterations == 0 && self.align.mode == AlignMode::Icp {
+            return Err(BuildError::param(
+                "align.iterations",
+                "must be at least 1 with mode = \"icp\"",
+            ));
+        }
+        for (k, v) in self
+            .align
+            .translation_mm
+            .iter()
+            .chain(&self.align.rotation_deg)
+            .enumerate()
+        {
+            if !v.is_finite() {
+                let name = if k < 3 {
+                    "align.translation_mm"
+                } else {
+                    "align.rotation_deg"
+                };
+                return Err(BuildError::param(name, format!("must be finite, got {v}")));
+            }
+        }
+        positive(self.normal_max_step_mm as f64, "normal_max_step_mm")?;
+        positive(self.visible_distance_mm, "visible_distance_mm")?;
+        if !(self.visible_angle_deg > 0.0 && self.visible_angle_deg <= 180.0) {
+            return Err(BuildError::param(
+                "visible_angle_deg",
+                "must be in (0, 180]",
+            ));
+        }
+        Ok(())
+    }
+
+    /// The given placement, world_from_template.
+    pub fn given_pose(&self) -> Isometry3<f64> {
+        let [rx, ry, rz] = self.align.rotation_deg.map(f64::to_radians);
+        let [tx, ty, tz] = self.align.translation_mm;
+        Isometry3::from_parts(
+            Translation3::new(tx, ty, tz),
+            UnitQuaternion::from_euler_angles(rx, ry, rz),
+        )
+    }
+}
+
+/// The template bound to its graph, in the canonical (aligned, undeformed) world frame.
+struct Model {
+    points: Vec<Vector3<f64>>,
+    normals: Vec<Vector3<f64>>,
+    bindings: Vec<Binding>,
+    triangles: Vec<[u32; 3]>,
+    colors: Vec<[u8; 3]>,
+    color_quality: Vec<f32>,
+    graph: EdGraph,
+}
+
+/// The node.
+pub struct TemplateNode {
+    p: Params,
+    engine: Engine,
+    /// The template read from `template_path` at build time.
+    file_template: Option<Arc<Mesh>>,
+    model: Option<Model>,
+    vertices: Vec<[f32; 3]>,
+    scan_normals: Vec<[f32; 3]>,
+    /// Alignment figures for metrics.json.
+    align_rms: Option<(f64, f64)>,
+    /// The GPU field kernel, with `field.device` = "gpu" (or "auto" with an adapter).
+    gpu: Option<(Arc<GpuContext>, DffKernel)>,
+}
+
+fn v3(p: [f32; 3]) -> Vector3<f64> {
+    Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64)
+}
+
+fn f3(v: &Vector3<f64>) -> [f32; 3] {
+    [v.x as f32, v.y as f32, v.z as f32]
+}
+
+/// Reads a template file into a mesh with normals.
+pub fn read_template(path: &std::path::Path) -> Result<Mesh, String> {
+    let m = misslam_source_phantom::mesh_input::read_mesh(path)?;
+    if m.triangles.is_empty() {
+        return Err(format!(
+            "{}: the template has no triangles (a surface is needed for its normals)",
+            path.display()
+        ));
+    }
+    Ok(Mesh {
+        vertices: m.vertices,
+        normals: None,
+        colors: None,
+        triangles: m.triangles,
+    })
+}
+
+fn intrinsics(d: &DepthMap) -> Intrinsics {
+    Intrinsics {
+        fx: d.calib.fx,
+        fy: d.calib.fy,
+        cx: d.calib.cx,
+        cy: d.calib.cy,
+        width: d.map.width,
+        height: d.map.height,
+    }
+}
+
+impl TemplateNode {
+    /// Places the template (given pose, then ICP if asked), checks it and binds it to a new graph.
+    fn init_model(
+        &mut self,
+        template: &Mesh,
+        pose: &Isometry3<f64>,
+        k: &Intrinsics,
+        metrics: &mut Metrics,
+    ) -> Result<Model, String> {
+        let nv = template.vertices.len();
+        if nv == 0 {
+            return Err("the template has no vertices".into());
+        }
+        if let Some(t) = template
+            .triangles
+            .iter()
+            .find(|t| t.iter().any(|&i| i as usize >= nv))
+        {
+            return Err(format!(
+                "template triangle {t:?} indexes past its {nv} vertices"
+            ));
+        }
+        if let Some(i) = template
+            .vertices
+            .iter()
+            .position(|p| !p.iter().all(|c| c.is_finite()))
+        {
+            return Err(format!("template vertex {i} is not finite"));
+        }
+        let given = self.p.given_pose();
+        let mut points: Vec<Vector3<f64>> = template
+            .vertices
+            .iter()
+            .map(|p| (given * Point3::from(v3(*p))).coords)
+            .collect();
+        let mut normals: Vec<Vector3<f64>> = match &template.normals {
+            Some(n) if n.len() == nv => n.iter().map(|q| given.rotation * v3(*q)).collect(),
+            _ if !template.triangles.is_empty() => mesh_normals(&points, &template.triangles),
+            _ => {
+                return Err(
+                    "the template has neither normals nor triangles to compute them from".into(),
+                )
+            }
+        };
+        if self.p.align.mode == AlignMode::Icp {
+            let a = &self.p.align;
+            let field = DistanceField::from_scan(
+                &self.vertices,
+                &self.scan_normals,
+                a.voxel_mm,
+                a.truncation_mm,
+                self.p.field.max_voxels,
+            )
+            .map_err(|e| format!("alignment field: {e}"))?;
+            // Align in the camera frame: only the side facing the scope can meet the scan.
+            let cfw = pose.inverse();
+            let facing: Vec<Vector3<f64>> = points
+                .iter()
+                .zip(&normals)
+                .map(|(p, n)| ((cfw * Point3::from(*p)).coords, cfw.rotation * n))
+                .filter(|(p, n)| n.dot(p) < 0.0 && p.z > 0.0)
+                .map(|(p, _)| p)
+                .collect();
+            let (t_cam, info) = align_to_field(
+                &facing,
+                &field,
+                &AlignOptions {
+                    iterations: a.iterations,
+                    huber_mm: a.huber_mm,
+                    ..Default::default()
+                },
+            )?;
+            let t_world = pose * t_cam * cfw;
+            for p in points.iter_mut() {
+                *p = (t_world * Point3::from(*p)).coords;
+            }
+            for n in normals.iter_mut() {
+                *n = t_world.rotation * *n;
+            }
+            tracing::info!(
+                iterations = info.iterations,
+                rms_before_mm = info.rms_before_mm,
+                rms_after_mm = info.rms_after_mm,
+                "template aligned by ICP"
+            );
+            metrics
+                .values
+                .insert("template.align_rms_before_mm".into(), info.rms_before_mm);
+            metrics
+                .values
+                .insert("template.align_rms_after_mm".into(), info.rms_after_mm);
+            self.align_rms = Some((info.rms_before_mm, info.rms_after_mm));
+        }
+        let graph = EdGraph::from_points(&points, self.p.graph.clone())?;
+        let bindings = graph.bind_all(&points);
+        // Outward normals are needed to meet the scan's: if the vertices that lie on the scan
+        // mostly face away from the scope, the template's winding is inverted.
+        let near = visible_points(
+            &graph,
+            &points,
+            &normals,
+            &bindings,
+            pose,
+            k,
+            &self.vertices,
+            &self.scan_normals,
+            self.p.visible_distance_mm,
+            180.0,
+        );
+        let cfw = pose.inverse();
+        let away = near
+            .iter()
+            .filter(|&&i| {
+                let p = (cfw * Point3::from(points[i as usize])).coords;
+                (cfw.rotation * normals[i as usize]).dot(&p) > 0.0
+            })
+            .count();
+        if near.is_empty() {
+            tracing::warn!(
+                "no template vertex lies within visible_distance_mm of the first scan: check the alignment"
+            );
+        } else if 2 * away > near.len() {
+            tracing::warn!(
+                away,
+                near = near.len(),
+                "the template's normals point inwards (inverted winding): flipped"
+            );
+            for n in normals.iter_mut() {
+                *n = -*n;
+            }
+        }
+        let colors = template
+            .colors
+            .clone()
+            .filter(|c| c.len() == nv)
+            .unwrap_or_else(|| vec![[190, 190, 190]; nv]);
+        Ok(Model {
+            color_quality: vec![0.0; nv],
+            points,
+            normals,
+            bindings,
+            triangles: template.triangles.clone(),
+            colors,
+            graph,
+        })
+    }
+
+    fn frame(
+        &mut self,
+        frame: FrameInfo,
+        inputs: &Inputs,
+        outputs: &mut Outputs,
+    ) -> NodeResult<Flow> {
+        let depth = inputs.get::<DepthMap>("depth")?;
+        let k = intrinsics(depth);
+        let (w, h) = (k.width as usize, k.height as usize);
+        if depth.map.data.len() != w * h {
+            return Err(NodeError::msg(format!(
+                "depth map of frame {} has {} values for {w}x{h} pixels",
+                frame.index,
+                depth.map.data.len()
+            )));
+        }
+        let pair = inputs.opt::<StereoFrame>("stereo")?;
+        let left: Option<&Image> = pair
+            .map(|p| p.left.as_ref())
+            .filter(|im| self.p.color && im.width as usize == w && im.height as usize == h);
+        let prior = inputs.opt::<Pose>("pose")?;
+        let mut pose = prior.map_or(Isometry3::identity(), |p| p.world_from_camera);
+        let lost = prior.is_some_and(|p| p.state == TrackingState::Lost);
+        scan_from_depth_into(
+            &depth.map.data,
+            &k,
+            self.p.normal_max_step_mm,
+            &mut self.vertices,
+            &mut self.scan_normals,
+        );
+        let mut metrics = Metrics::default();
+        if self.model.is_none() {
+            let template = match &self.file_template {
+                Some(t) => t.clone(),
+                None => inputs.opt::<Mesh>("template")?.cloned().ok_or_else(|| {
+                    NodeError::msg(
+                        "fusion.template needs a template: set `template_path` or connect the `template` input",
+                    )
+                })?,
+            };
+            let m = self
+                .init_model(&template, &pose, &k, &mut metrics)
+                .map_err(|e| NodeError::msg(format!("frame {}: {e}", frame.index)))?;
+            self.model = Some(m);
+        }
+        let Some(model) = self.model.as_mut() else {
+            return Err(NodeError::msg("no model"));
+        };
+        let mut visible = Vec::new();
+        let mut field_surface = None;
+        if lost {
+            tracing::warn!(
+                frame = frame.index,
+                "tracking lost: the template is not deformed on this frame"
+            );
+        } else {
+            visible = visible_points(
+                &model.graph,
+                &model.points,
+                &model.normals,
+                &model.bindings,
+                &pose,
+                &k,
+                &self.vertices,
+                &self.scan_normals,
+                self.p.visible_distance_mm,
+                self.p.visible_angle_deg,
+            );
+            let field = match self.p.data_term {
+                DataTerm::Dff => {
+                    let t = Instant::now();
+                    let fp = &self.p.field;
+                    let f = match &self.gpu {
+                        Some((ctx, kernel)) => kernel
+                            .build(
+                                ctx,
+                                &self.vertices,
+                                &self.scan_normals,
+                                &k,
+                                fp.voxel_mm,
+                                fp.truncation_mm,
+                                fp.window_px,
+                                fp.max_voxels,
+                            )
+                            .map(|(f, _)| f),
+                        None => DistanceField::from_maps(
+                            &self.vertices,
+                            &self.scan_normals,
+                            &k,
+                            fp.voxel_mm,
+                            fp.truncation_mm,
+                            fp.window_px,
+                            fp.max_voxels,
+                        ),
+                    }
+                    .map_err(|e| NodeError::msg(format!("frame {}: {e}", frame.index)))?;
+                    metrics
+                        .values
+                        .insert("template.field_ms".into(), t.elapsed().as_secs_f64() * 1e3);
+                    metrics
+                        .values
+                        .insert("template.voxels".into(), f.values.len() as f64);
+                    Some(f)
+                }
+                DataTerm::Projective => None,
+            };
+            let lp: Vec<Vector3<f64>> = visible.iter().map(|&i| model.points[i as usize]).collect();
+            let ln: Vec<Vector3<f64>> =
+                visible.iter().map(|&i| model.normals[i as usize]).collect();
+            let lb: Vec<Binding> = visible
+                .iter()
+                .map(|&i| model.bindings[i as usize])
+                .collect();
+            let problem = Problem {
+                model: ModelPoints {
+                    points: &lp,
+                    normals: &ln,
+                    bindings: &lb,
+                },
+                scan: match self.p.data_term {
+                    DataTerm::Projective => Some(Scan {
+                        intrinsics: k,
+                        vertices: &self.vertices,
+                        normals: &self.scan_normals,
+                    }),
+                    DataTerm::Dff => None,
+                },
+                field: field.as_ref(),
+                correspondences: &[],
+                pose_prior: pose,
+            };
+            let (info, split) = self
+                .engine
+                .solve(
+                    frame.index,
+                    &mut model.graph,
+                    &mut pose,
+                    &problem,
+                    &self.p.solver,
+                    &self.p.decoupled,
+                )
+                .map_err(NodeError::msg)?;
+            for (key, v) in [
+                ("template.iterations", info.iterations as f64),
+                ("template.cost_before", info.cost_before),
+                ("template.cost_after", info.cost_after),
+                ("template.data_terms", info.data_terms as f64),
+                ("template.solved_nodes", info.solved_nodes as f64),
+                ("template.solve_ms", info.ms_total),
+            ] {
+                metrics.values.insert(key.into(), v);
+            }
+            if let Some(d) = split {
+                metrics
+                    .values
+                    .insert("template.pr_nodes".into(), d.pr_nodes as f64);
+            }
+            if let Some(f) = &field {
+                field_surface = Some(zero_level(f, &pose));
+            }
+        }
+        // The deformed template, and its colour from this view.
+        let (mut live, mut live_n) = (Vec::new(), Vec::new());
+        model.graph.deform(
+            &model.points,
+            Some(&model.normals),
+            &model.bindings,
+            &mut live,
+            &mut live_n,
+        );
+        if let Some(img) = left {
+            let cfw = pose.inverse();
+            for &i in &visible {
+                let i = i as usize;
+                let p = cfw * Point3::from(live[i]);
+                let u = (k.fx * p.x / p.z + k.cx).round();
+                let v = (k.fy * p.y / p.z + k.cy).round();
+                if !(p.z > 0.0 && u >= 0.0 && v >= 0.0 && (u as usize) < w && (v as usize) < h) {
+                    continue;
+                }
+                let c = color_at(Some(img), v as usize * w + u as usize);
+                let q = color_quality(f3(&(cfw.rotation * live_n[i])), c);
+                if q >= model.color_quality[i] {
+                    model.colors[i] = c;
+                    model.color_quality[i] = q;
+                }
+            }
+        }
+        metrics
+            .values
+            .insert("template.visible".into(), visible.len() as f64);
+        metrics
+            .values
+            .insert("template.nodes".into(), model.graph.len() as f64);
+        outputs.put(
+            "mesh",
+            Mesh {
+                vertices: live.iter().map(f3).collect(),
+                normals: Some(live_n.iter().map(f3).collect()),
+                colors: Some(model.colors.clone()),
+                triangles: model.triangles.clone(),
+            },
+        )?;
+        outputs.put(
+            "visible",
+            PointCloud {
+                positions: visible.iter().map(|&i| f3(&live[i as usize])).collect(),
+                colors: None,
+            },
+        )?;
+        if let Some(s) = field_surface {
+            outputs.put("field", s)?;
+        }
+        outputs.put("graph", model.graph.to_payload())?;
+        outputs.put(
+            "pose",
+            Pose {
+                world_from_camera: pose,
+                state: prior.map_or(TrackingState::Tracking, |p| p.state),
+            },
+        )?;
+        outputs.put("info", metrics)?;
+        Ok(Flow::Continue)
+    }
+}
+
+/// The field's voxels within half a voxel of the zero level, in the world frame: what the solve
+/// pulled the template onto, to look at in the viewer.
+fn zero_level(f: &DistanceField, world_from_camera: &Isometry3<f64>) -> PointCloud {
+    let [nx, ny, _] = f.dims;
+    let half = 0.5 * f.voxel;
+    let positions = f
+        .values
+        .iter()
+        .enumerate()
+        .filter(|(_, v)| (**v as f64).abs() < half)
+        .map(|(i, _)| {
+            let (x, y, z) = (i % nx, (i / nx) % ny, i / (nx * ny));
+            let c = f.origin + Vector3::new(x as f64, y as f64, z as f64) * f.voxel;
+            f3(&(world_from_camera * Point3::from(c)).coords)
+        })
+        .collect();
+    PointCloud {
+        positions,
+        colors: None,
+    }
+}
+
+impl Node for TemplateNode {
+    fn process(
+        &mut self,
+        _: &mut NodeContext,
+        frame: FrameInfo,
+        inputs: &Inputs,
+        outputs: &mut Outputs,
+    ) -> NodeResult<Flow> {
+        self.frame(frame, inputs, outputs)
+    }
+
+    fn finish(&mut self, ctx: &mut NodeContext) -> NodeResult<()> {
+        if let Some(m) = &self.model {
+            ctx.report_eval("template.vertices", m.points.len() as f64);
+            ctx.report_eval("template.nodes", m.graph.len() as f64);
+        }
+        if let Some((before, after)) = self.align_rms {
+            ctx.report_eval("template.align_rms_before_mm", before);
+            ctx.report_eval("template.align_rms_after_mm", after);
+        }
+        Ok(())
+    }
+}
+
+/// Builds the node; reads `template_path` now so a missing or corrupt file fails before any frame.
+pub fn build(p: Params, ctx: &BuildContext) -> Result<TemplateNode, BuildError> {
+    p.check()?;
+    let gpu = if p.data_term == DataTerm::Dff {
+        ctx.gpu
+            .for_device(p.field.device, ctx.node_id)
+            .map_err(|e| BuildError::param("field.device", e.to_string()))?
+            .map(|c| {
+                let k = DffKernel::new(&c);
+                (c, k)
+            })
+    } else {
+        None
+    };
+    let file_template = match &p.template_path {
+        Some(path) => Some(Arc::new(
+            read_template(path).map_err(|e| BuildError::param("template_path", e))?,
+        )),
+        None => None,
+    };
+    Ok(TemplateNode {
+        engine: Engine::new(p.solver_kind),
+        p,
+        file_template,
+        model: None,
+        vertices: Vec::new(),
+        scan_normals: Vec::new(),
+        align_rms: None,
+        gpu,
+    })
+}
+
+/// Registers `fusion.template`.
+pub fn register(registry: &mut Registry) -> Result<(), String> {
+    registry.register(TypedPlugin::new(
+        "fusion.template",
+        "template-based fusion: a pre-operative mesh aligned once, deformed by ED onto each scan through a distance field (DFF) or back-projection",
+        vec![
+            PortSpec::new(
+                "depth",
+                PortType::Depth,
+                "the live depth (left camera): the scan",
+            ),
+            PortSpec::optional(
+                "stereo",
+                PortType::Stereo,
+                "the pair, for the template's colour (left image)",
+            ),
+            PortSpec::optional(
+                "pose",
+                PortType::Pose,
+                "world_from_camera from the tracker (prior); a lost frame is not deformed",
+            ),
+            PortSpec::optional(
+                "template",
+                PortType::Mesh,
+                "the pre-operative surface, world frame, read on the first frame (without template_path)",
+            ),
+        ],
+        vec![
+            PortSpec::new(
+                "mesh",
+                PortType::Mesh,
+                "the deformed template, world frame, coloured",
+            ),
+            PortSpec::new(
+                "visible",
+                PortType::PointCloud,
+                "the deformed vertices that fed the data term",
+            ),
+            PortSpec::optional(
+                "field",
+                PortType::PointCloud,
+                "the distance field's zero level (voxels within half a voxel), world frame",
+            ),
+            PortSpec::new("graph", PortType::DeformationGraph, "nodes, warps, edges"),
+            PortSpec::new("pose", PortType::Pose, "the pose after the solve"),
+            PortSpec::new(
+                "info",
+                PortType::Metrics,
+                "template.visible, nodes, field_ms, voxels, solve_ms, iterations, costs",
+            ),
+        ],
+        build,
+    ))
+}
