@@ -98,8 +98,10 @@ fn the_gpu_distance_field_matches_the_cpu_reference() {
     let (v, n) = scan_from_depth(&f.depth.map.data, &k, 3.0);
     let kernel = DffKernel::new(&ctx);
     for (voxel, trunc, window) in [(1.0, 5.0, 2), (0.7, 3.0, 0), (1.5, 4.0, 3)] {
+        let t = std::time::Instant::now();
         let cpu = DistanceField::from_maps(&v, &n, &k, voxel, trunc, window, 50_000_000).unwrap();
-        let (gpu, _) = kernel
+        let cpu_ms = t.elapsed().as_secs_f64() * 1e3;
+        let (gpu, timing) = kernel
             .build(&ctx, &v, &n, &k, voxel, trunc, window, 50_000_000)
             .unwrap();
         assert_eq!(cpu.dims, gpu.dims);
@@ -124,8 +126,8 @@ fn the_gpu_distance_field_matches_the_cpu_reference() {
         }
         let total = cpu.values.len();
         println!(
-            "voxel {voxel} mm, window {window}: {total} voxels, {known} known, {mask_diff} differ in validity, {off} by > 1e-4 mm, worst {worst} mm ({})",
-            ctx.adapter_info.name
+            "voxel {voxel} mm, window {window}: {total} voxels, {known} known, {mask_diff} differ in validity, {off} by > 1e-4 mm, worst {worst} mm; CPU {cpu_ms:.1} ms, {} {:.1} + {:.1} ms",
+            ctx.adapter_info.name, timing.prepare_ms, timing.gpu_ms
         );
         assert!(known > total / 20, "{known} of {total} known");
         assert!(mask_diff * 1000 <= total, "{mask_diff}");
