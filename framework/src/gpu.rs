@@ -166,6 +166,38 @@ impl GpuContext {
             })
     }
 
+    /// Binds `buffers` to bindings 0, 1, 2, ... of group 0 of `pipeline`, dispatches `groups`
+    /// workgroups and submits: one kernel launch.
+    pub fn dispatch(
+        &self,
+        pipeline: &wgpu::ComputePipeline,
+        label: &str,
+        buffers: &[&wgpu::Buffer],
+        groups: (u32, u32, u32),
+    ) {
+        let entries: Vec<wgpu::BindGroupEntry> = buffers
+            .iter()
+            .enumerate()
+            .map(|(i, b)| wgpu::BindGroupEntry {
+                binding: i as u32,
+                resource: b.as_entire_binding(),
+            })
+            .collect();
+        let bind = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some(label),
+            layout: &pipeline.get_bind_group_layout(0),
+            entries: &entries,
+        });
+        let mut enc = self.device.create_command_encoder(&Default::default());
+        {
+            let mut pass = enc.begin_compute_pass(&Default::default());
+            pass.set_pipeline(pipeline);
+            pass.set_bind_group(0, &bind, &[]);
+            pass.dispatch_workgroups(groups.0, groups.1, groups.2);
+        }
+        self.queue.submit(Some(enc.finish()));
+    }
+
     /// Copies `size` bytes of a `COPY_SRC` buffer back to the host and waits for them.
     pub fn read_back(&self, src: &wgpu::Buffer, size: u64) -> Result<Vec<u8>, GpuError> {
         let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
@@ -251,32 +283,12 @@ impl GrayKernel {
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
             mapped_at_creation: false,
         });
-        let bind = dev.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("gray"),
-            layout: &self.pipeline.get_bind_group_layout(0),
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: params_buf.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: in_buf.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: out_buf.as_entire_binding(),
-                },
-            ],
-        });
-        let mut enc = dev.create_command_encoder(&Default::default());
-        {
-            let mut pass = enc.begin_compute_pass(&Default::default());
-            pass.set_pipeline(&self.pipeline);
-            pass.set_bind_group(0, &bind, &[]);
-            pass.dispatch_workgroups((quads as u32).div_ceil(64), 1, 1);
-        }
-        ctx.queue.submit(Some(enc.finish()));
+        ctx.dispatch(
+            &self.pipeline,
+            "gray",
+            &[&params_buf, &in_buf, &out_buf],
+            ((quads as u32).div_ceil(64), 1, 1),
+        );
         let mut out = ctx.read_back(&out_buf, out_size)?;
         out.truncate(pixels);
         Ok(out)

@@ -74,6 +74,25 @@ impl DistanceField {
         })
     }
 
+    /// Checks that vertex and normal maps hold one entry per pixel of `k`.
+    pub fn check_maps(
+        vertices: &[[f32; 3]],
+        normals: &[[f32; 3]],
+        k: &Intrinsics,
+    ) -> Result<(), String> {
+        let n = k.width as usize * k.height as usize;
+        if vertices.len() != n || normals.len() != n {
+            return Err(format!(
+                "the vertex and normal maps have {} and {} entries for {}x{} pixels",
+                vertices.len(),
+                normals.len(),
+                k.width,
+                k.height
+            ));
+        }
+        Ok(())
+    }
+
     /// The box a scan's field covers: its valid points (finite vertex and normal) padded by
     /// `truncation`, as (origin, dims). Fails on an empty scan or past `max_voxels`.
     pub fn scan_box(
@@ -137,14 +156,7 @@ impl DistanceField {
         window: u32,
         max_voxels: usize,
     ) -> Result<Self, String> {
-        let (w, h) = (k.width as usize, k.height as usize);
-        if vertices.len() != w * h || normals.len() != w * h {
-            return Err(format!(
-                "the vertex and normal maps have {} and {} entries for {w}x{h} pixels",
-                vertices.len(),
-                normals.len()
-            ));
-        }
+        Self::check_maps(vertices, normals, k)?;
         let (origin, dims) = Self::scan_box(vertices, normals, voxel, truncation, max_voxels)?;
         let q = ProjectiveField::new(origin, voxel, truncation, k, window);
         let mut values = vec![f32::NAN; dims[0] * dims[1] * dims[2]];

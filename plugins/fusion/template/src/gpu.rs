@@ -52,14 +52,8 @@ impl DffKernel {
         max_voxels: usize,
     ) -> Result<(DistanceField, DffTiming), String> {
         let t0 = std::time::Instant::now();
+        DistanceField::check_maps(vertices, normals, k)?;
         let (w, h) = (k.width as usize, k.height as usize);
-        if vertices.len() != w * h || normals.len() != w * h {
-            return Err(format!(
-                "the vertex and normal maps have {} and {} entries for {w}x{h} pixels",
-                vertices.len(),
-                normals.len()
-            ));
-        }
         let (origin, dims) =
             DistanceField::scan_box(vertices, normals, voxel, truncation, max_voxels)?;
         let total = dims[0] * dims[1] * dims[2];
@@ -131,36 +125,12 @@ impl DffKernel {
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
             mapped_at_creation: false,
         });
-        let bind = dev.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("dff"),
-            layout: &self.pipeline.get_bind_group_layout(0),
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: params_buf.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: pts_buf.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: nrm_buf.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 3,
-                    resource: out_buf.as_entire_binding(),
-                },
-            ],
-        });
-        let mut enc = dev.create_command_encoder(&Default::default());
-        {
-            let mut pass = enc.begin_compute_pass(&Default::default());
-            pass.set_pipeline(&self.pipeline);
-            pass.set_bind_group(0, &bind, &[]);
-            pass.dispatch_workgroups(gx, gy, 1);
-        }
-        ctx.queue.submit(Some(enc.finish()));
+        ctx.dispatch(
+            &self.pipeline,
+            "dff",
+            &[&params_buf, &pts_buf, &nrm_buf, &out_buf],
+            (gx, gy, 1),
+        );
         let bytes = ctx
             .read_back(&out_buf, out_size)
             .map_err(|e: GpuError| e.to_string())?;
