@@ -252,15 +252,21 @@ fn a_template_read_from_a_file_gives_the_ports_result() {
     .unwrap();
     let dir = common::tmp_dir("template_file");
     std::fs::create_dir_all(&dir).unwrap();
-    let mut obj = String::new();
-    for v in ph.rest_vertices() {
-        obj += &format!("v {} {} {}\n", v[0], v[1], v[2]);
-    }
-    for t in ph.triangles() {
-        obj += &format!("f {} {} {}\n", t[0] + 1, t[1] + 1, t[2] + 1);
-    }
-    let path = dir.join("rest.obj");
-    std::fs::write(&path, obj).unwrap();
+    // `inverted` writes every face with the opposite winding (normals pointing into the organ).
+    let write = |name: &str, inverted: bool| {
+        let mut obj = String::new();
+        for v in ph.rest_vertices() {
+            obj += &format!("v {} {} {}\n", v[0], v[1], v[2]);
+        }
+        for t in ph.triangles() {
+            let (b, c) = if inverted { (t[2], t[1]) } else { (t[1], t[2]) };
+            obj += &format!("f {} {} {}\n", t[0] + 1, b + 1, c + 1);
+        }
+        let path = dir.join(name);
+        std::fs::write(&path, obj).unwrap();
+        path
+    };
+    let path = write("rest.obj", false);
     let from_port = exact(&[], "template_port");
     let set = format!("fusion.template_path=\"{}\"", path.display());
     let from_file = exact(&[&set], "template_file_run");
@@ -270,6 +276,27 @@ fn a_template_read_from_a_file_gives_the_ports_result() {
     // The OBJ carries no normals: they are recomputed from the faces (the port gives the
     // phantom's analytic ones), so the figures agree closely, not bit for bit.
     assert!((a - b).abs() < 0.02, "{a} vs {b}");
+    // Inverted winding, misplaced and aligned by ICP: the ICP does not rely on the normals, and
+    // the winding is detected against the aligned template and flipped.
+    let inv = write("inverted.obj", true);
+    let e = exact(
+        &[
+            &format!("fusion.template_path=\"{}\"", inv.display()),
+            "fusion.align.mode=icp",
+            "fusion.align.translation_mm=[2.5, -2.0, 3.0]",
+            "fusion.align.rotation_deg=[1.5, -1.0, 2.0]",
+        ],
+        "template_file_inverted",
+    );
+    eprintln!(
+        "inverted winding with ICP: rms {:.3} -> {:.3} mm, whole template {:.4} mm",
+        e["template.align_rms_before_mm"], e["template.align_rms_after_mm"], e["recon.mean_mm"]
+    );
+    assert!(
+        e["recon.mean_mm"] < b + 0.15,
+        "{} vs {b}",
+        e["recon.mean_mm"]
+    );
 }
 
 #[test]
@@ -321,6 +348,12 @@ fn bad_template_input_is_refused_with_the_field_or_frame() {
     ];
     let g = misslam::framework::graph::load(&path, &reg, &sets).unwrap();
     let report = common::run_graph(g, &dir.join("out"));
-    let text = format!("{:?}", report.metrics);
-    assert!(text.contains("template_path"), "{text}");
+    let err = report
+        .error
+        .expect("the run fails without a template")
+        .to_string();
+    assert!(
+        err.contains("template_path") && err.contains("`template` input"),
+        "{err}"
+    );
 }

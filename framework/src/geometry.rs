@@ -1,6 +1,19 @@
-//! Small geometry shared by plugins: the rigid alignment of point sets (Kabsch / Horn).
+//! Small geometry shared by plugins: the rigid alignment of point sets (Kabsch / Horn), and the
+//! conversions between payload points (`[f32; 3]`) and solver vectors (`Vector3<f64>`).
 
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+
+/// A payload point as a solver vector.
+#[inline]
+pub fn vec3(p: [f32; 3]) -> Vector3<f64> {
+    Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64)
+}
+
+/// A solver vector as a payload point.
+#[inline]
+pub fn arr3(v: &Vector3<f64>) -> [f32; 3] {
+    [v.x as f32, v.y as f32, v.z as f32]
+}
 
 /// The rigid motion `m` minimising sum |m(src_i) - dst_i|^2 (Kabsch; reflection-safe).
 pub fn align_rigid(src: &[Vector3<f64>], dst: &[Vector3<f64>]) -> Isometry3<f64> {

@@ -12,6 +12,7 @@
 //! (`P[r * 4 + c]`, column 3 is t), the layout the solver's Jacobians use.
 
 use crate::knn::GridIndex;
+use misslam_framework::geometry::arr3;
 use misslam_framework::nalgebra::{Matrix3, Rotation3, Vector3};
 use rayon::prelude::*;
 use schemars::JsonSchema;
@@ -387,9 +388,8 @@ impl EdGraph {
     /// The graph as the framework's payload (nodes, A and t per node, edges), for Rerun and
     /// downstream nodes.
     pub fn to_payload(&self) -> misslam_framework::DeformationGraph {
-        let f3 = |v: &Vector3<f64>| [v.x as f32, v.y as f32, v.z as f32];
         misslam_framework::DeformationGraph {
-            nodes: self.nodes.iter().map(f3).collect(),
+            nodes: self.nodes.iter().map(arr3).collect(),
             affines: self
                 .warp
                 .iter()

@@ -9,8 +9,9 @@
 use crate::decoupled::DecoupledParams;
 use crate::engine::{Engine, SolverKind};
 use crate::graph::{Binding, EdGraph, GraphParams};
-use crate::observe::{mesh_normals, scan_from_depth_into, visible_points};
+use crate::observe::{scan_from_depth_into, template_points, visible_points};
 use crate::problem::{Intrinsics, ModelPoints, Problem, Scan, SolverParams};
+use misslam_framework::geometry::{arr3, vec3};
 use misslam_framework::nalgebra::{Isometry3, Point3, Vector3};
 use misslam_framework::{
     BuildContext, BuildError, DepthMap, Flow, FrameInfo, Inputs, Mesh, Metrics, Node, NodeContext,
@@ -159,31 +160,7 @@ impl EdNode {
         pose: &Isometry3<f64>,
     ) -> Result<Model, String> {
         let (points, normals, triangles) = if let Some(mesh) = template {
-            if let Some(t) = mesh
-                .triangles
-                .iter()
-                .find(|t| t.iter().any(|&i| i as usize >= mesh.vertices.len()))
-            {
-                return Err(format!(
-                    "template triangle {t:?} indexes past its {} vertices",
-                    mesh.vertices.len()
-                ));
-            }
-            let v: Vec<Vector3<f64>> = mesh
-                .vertices
-                .iter()
-                .map(|p| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64))
-                .collect();
-            if v.iter().any(|p| !p.iter().all(|c| c.is_finite())) {
-                return Err("the template has non-finite vertices".into());
-            }
-            let n = match &mesh.normals {
-                Some(n) if n.len() == v.len() => n
-                    .iter()
-                    .map(|p| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64))
-                    .collect(),
-                _ => mesh_normals(&v, &mesh.triangles),
-            };
+            let (v, n) = template_points(mesh)?;
             (v, n, mesh.triangles.clone())
         } else {
             let (w, h) = (depth.map.width as usize, depth.map.height as usize);
@@ -195,8 +172,8 @@ impl EdNode {
                     let i = y * w + x;
                     let (p, q) = (scan.0[i], scan.1[i]);
                     if p.iter().chain(&q).all(|c| c.is_finite()) {
-                        v.push((pose * Point3::new(p[0] as f64, p[1] as f64, p[2] as f64)).coords);
-                        n.push(pose.rotation * Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64));
+                        v.push((pose * Point3::from(vec3(p))).coords);
+                        n.push(pose.rotation * vec3(q));
                     }
                 }
             }
@@ -369,12 +346,11 @@ impl EdNode {
             &mut dp,
             &mut dn,
         );
-        let f3 = |v: &Vector3<f64>| [v.x as f32, v.y as f32, v.z as f32];
         outputs.put(
             "mesh",
             Mesh {
-                vertices: dp.iter().map(f3).collect(),
-                normals: Some(dn.iter().map(f3).collect()),
+                vertices: dp.iter().map(arr3).collect(),
+                normals: Some(dn.iter().map(arr3).collect()),
                 colors: None,
                 triangles: model.triangles.clone(),
             },
@@ -382,7 +358,7 @@ impl EdNode {
         outputs.put(
             "visible",
             PointCloud {
-                positions: visible.iter().map(|&i| f3(&dp[i as usize])).collect(),
+                positions: visible.iter().map(|&i| arr3(&dp[i as usize])).collect(),
                 colors: None,
             },
         )?;

@@ -4,8 +4,9 @@
 
 use crate::graph::{Binding, EdGraph};
 use crate::problem::Intrinsics;
+use misslam_framework::geometry::vec3;
 use misslam_framework::nalgebra::{Isometry3, Point3, Vector3};
-use misslam_framework::Image;
+use misslam_framework::{Image, Mesh};
 use rayon::prelude::*;
 
 /// Lifts depth (mm, NaN invalid, row-major) to camera-frame vertices and normals. A normal is the
@@ -61,6 +62,46 @@ pub fn mesh_normals(v: &[Vector3<f64>], triangles: &[[u32; 3]]) -> Vec<Vector3<f
     n.iter()
         .map(|x| x.try_normalize(1e-12).unwrap_or(Vector3::repeat(f64::NAN)))
         .collect()
+}
+
+/// Solver vectors.
+pub type Points = Vec<Vector3<f64>>;
+
+/// A template mesh's vertices and unit normals as solver vectors, checked: every triangle indexes
+/// an existing vertex, every vertex is finite; normals come from the mesh when it has one per
+/// vertex, else from its faces.
+pub fn template_points(mesh: &Mesh) -> Result<(Points, Points), String> {
+    let nv = mesh.vertices.len();
+    if nv == 0 {
+        return Err("the template has no vertices".into());
+    }
+    if let Some(t) = mesh
+        .triangles
+        .iter()
+        .find(|t| t.iter().any(|&i| i as usize >= nv))
+    {
+        return Err(format!(
+            "template triangle {t:?} indexes past its {nv} vertices"
+        ));
+    }
+    if let Some(i) = mesh
+        .vertices
+        .iter()
+        .position(|p| !p.iter().all(|c| c.is_finite()))
+    {
+        return Err(format!("template vertex {i} is not finite"));
+    }
+    let points: Vec<Vector3<f64>> = mesh.vertices.iter().map(|p| vec3(*p)).collect();
+    let normals = match &mesh.normals {
+        Some(n) if n.len() == nv => n.iter().map(|q| vec3(*q)).collect(),
+        _ if !mesh.triangles.is_empty() => mesh_normals(&points, &mesh.triangles),
+        _ => {
+            return Err(
+                "the template has neither normals nor triangles to compute them from".into(),
+            )
+        }
+    };
+    Ok((points, normals))
 }
 
 /// Indices of the model points visible in the scan: the warped point projects inside the image

@@ -24,6 +24,7 @@ use misslam_deformation_ed::observe::{
     color_at, color_quality, scan_from_depth_into, visible_points,
 };
 use misslam_deformation_ed::problem::{Intrinsics, ModelPoints, Problem, Scan, SolverParams};
+use misslam_framework::geometry::{arr3, vec3};
 use misslam_framework::nalgebra::{Isometry3, Matrix3, Point3, Vector3};
 use misslam_framework::{
     BuildContext, BuildError, DepthMap, Flow, FrameInfo, Image, Inputs, Metrics, Node, NodeContext,
@@ -204,14 +205,6 @@ pub struct SurfelNode {
     scan_normals: Vec<[f32; 3]>,
 }
 
-fn v3(p: [f32; 3]) -> Vector3<f64> {
-    Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64)
-}
-
-fn f3(v: &Vector3<f64>) -> [f32; 3] {
-    [v.x as f32, v.y as f32, v.z as f32]
-}
-
 /// The warp's local linear part at a binding, as the pair (A^-1, A^T) derived from the blended
 /// normal matrices A^-T: A^-1 maps a live displacement back to the canonical frame, A^T maps a
 /// live normal back.
@@ -276,9 +269,9 @@ impl SurfelNode {
                     let i = y * w + x;
                     let (v, n) = (self.vertices[i], self.scan_normals[i]);
                     if v.iter().chain(&n).all(|c| c.is_finite()) {
-                        let c = (pose * Point3::from(v3(v))).coords;
+                        let c = (pose * Point3::from(vec3(v))).coords;
                         let col = color_at(left, i);
-                        pts.push((c, pose.rotation * v3(n), col, color_quality(n, col)));
+                        pts.push((c, pose.rotation * vec3(n), col, color_quality(n, col)));
                     }
                 }
             }
@@ -397,8 +390,8 @@ impl SurfelNode {
                     if !v.iter().chain(&n).all(|c| c.is_finite()) {
                         continue;
                     }
-                    let wp = (pose * Point3::from(v3(v))).coords;
-                    let wn = pose.rotation * v3(n);
+                    let wp = (pose * Point3::from(vec3(v))).coords;
+                    let wn = pose.rotation * vec3(n);
                     let color = color_at(left, i);
                     let quality = color_quality(n, color);
                     let (_, s) = cell[gy * gw + gx];
@@ -504,8 +497,8 @@ impl SurfelNode {
         outputs.put(
             "model",
             SurfelModel {
-                positions: live.iter().map(f3).collect(),
-                normals: live_n.iter().map(f3).collect(),
+                positions: live.iter().map(arr3).collect(),
+                normals: live_n.iter().map(arr3).collect(),
                 colors: m.colors.clone(),
                 weights: m.weights.clone(),
                 timestamps: m.seen.clone(),

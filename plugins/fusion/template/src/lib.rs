@@ -26,10 +26,11 @@ use misslam_deformation_ed::decoupled::DecoupledParams;
 use misslam_deformation_ed::engine::{Engine, SolverKind};
 use misslam_deformation_ed::graph::{Binding, EdGraph, GraphParams};
 use misslam_deformation_ed::observe::{
-    color_at, color_quality, mesh_normals, scan_from_depth_into, visible_points,
+    color_at, color_quality, scan_from_depth_into, template_points, visible_points,
 };
 use misslam_deformation_ed::problem::{Intrinsics, ModelPoints, Problem, Scan, SolverParams};
 use misslam_deformation_ed::DistanceField;
+use misslam_framework::geometry::arr3;
 use misslam_framework::nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use misslam_framework::{
     BuildContext, BuildError, DepthMap, Device, Flow, FrameInfo, GpuContext, Image, Inputs, Mesh,
@@ -278,14 +279,6 @@ pub struct TemplateNode {
     gpu: Option<(Arc<GpuContext>, DffKernel)>,
 }
 
-fn v3(p: [f32; 3]) -> Vector3<f64> {
-    Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64)
-}
-
-fn f3(v: &Vector3<f64>) -> [f32; 3] {
-    [v.x as f32, v.y as f32, v.z as f32]
-}
-
 /// Reads a template file into a mesh with normals.
 pub fn read_template(path: &std::path::Path) -> Result<Mesh, String> {
     let m = misslam_source_phantom::mesh_input::read_mesh(path)?;
@@ -324,40 +317,12 @@ impl TemplateNode {
         metrics: &mut Metrics,
     ) -> Result<Model, String> {
         let nv = template.vertices.len();
-        if nv == 0 {
-            return Err("the template has no vertices".into());
-        }
-        if let Some(t) = template
-            .triangles
-            .iter()
-            .find(|t| t.iter().any(|&i| i as usize >= nv))
-        {
-            return Err(format!(
-                "template triangle {t:?} indexes past its {nv} vertices"
-            ));
-        }
-        if let Some(i) = template
-            .vertices
-            .iter()
-            .position(|p| !p.iter().all(|c| c.is_finite()))
-        {
-            return Err(format!("template vertex {i} is not finite"));
-        }
+        let (mut points, mut normals) = template_points(template)?;
         let given = self.p.given_pose();
-        let mut points: Vec<Vector3<f64>> = template
-            .vertices
-            .iter()
-            .map(|p| (given * Point3::from(v3(*p))).coords)
-            .collect();
-        let mut normals: Vec<Vector3<f64>> = match &template.normals {
-            Some(n) if n.len() == nv => n.iter().map(|q| given.rotation * v3(*q)).collect(),
-            _ if !template.triangles.is_empty() => mesh_normals(&points, &template.triangles),
-            _ => {
-                return Err(
-                    "the template has neither normals nor triangles to compute them from".into(),
-                )
-            }
-        };
+        for (p, n) in points.iter_mut().zip(normals.iter_mut()) {
+            *p = (given * Point3::from(*p)).coords;
+            *n = given.rotation * *n;
+        }
         if self.p.align.mode == AlignMode::Icp {
             let a = &self.p.align;
             let field = DistanceField::from_scan(
@@ -368,17 +333,18 @@ impl TemplateNode {
                 self.p.field.max_voxels,
             )
             .map_err(|e| format!("alignment field: {e}"))?;
-            // Align in the camera frame: only the side facing the scope can meet the scan.
+            // Align in the camera frame. No normal test picks the side facing the scope: the
+            // winding is not known yet (it is checked below, against the aligned template), and
+            // parts the scan does not see lie outside the field's truncation or count less by
+            // the Huber weights.
             let cfw = pose.inverse();
-            let facing: Vec<Vector3<f64>> = points
+            let ahead: Vec<Vector3<f64>> = points
                 .iter()
-                .zip(&normals)
-                .map(|(p, n)| ((cfw * Point3::from(*p)).coords, cfw.rotation * n))
-                .filter(|(p, n)| n.dot(p) < 0.0 && p.z > 0.0)
-                .map(|(p, _)| p)
+                .map(|p| (cfw * Point3::from(*p)).coords)
+                .filter(|p| p.z > 0.0)
                 .collect();
             let (t_cam, info) = align_to_field(
-                &facing,
+                &ahead,
                 &field,
                 &AlignOptions {
                     iterations: a.iterations,
@@ -642,7 +608,7 @@ impl TemplateNode {
                     continue;
                 }
                 let c = color_at(Some(img), v as usize * w + u as usize);
-                let q = color_quality(f3(&(cfw.rotation * live_n[i])), c);
+                let q = color_quality(arr3(&(cfw.rotation * live_n[i])), c);
                 if q >= model.color_quality[i] {
                     model.colors[i] = c;
                     model.color_quality[i] = q;
@@ -658,8 +624,8 @@ impl TemplateNode {
         outputs.put(
             "mesh",
             Mesh {
-                vertices: live.iter().map(f3).collect(),
-                normals: Some(live_n.iter().map(f3).collect()),
+                vertices: live.iter().map(arr3).collect(),
+                normals: Some(live_n.iter().map(arr3).collect()),
                 colors: Some(model.colors.clone()),
                 triangles: model.triangles.clone(),
             },
@@ -667,7 +633,7 @@ impl TemplateNode {
         outputs.put(
             "visible",
             PointCloud {
-                positions: visible.iter().map(|&i| f3(&live[i as usize])).collect(),
+                positions: visible.iter().map(|&i| arr3(&live[i as usize])).collect(),
                 colors: None,
             },
         )?;
@@ -700,7 +666,7 @@ fn zero_level(f: &DistanceField, world_from_camera: &Isometry3<f64>) -> PointClo
         .map(|(i, _)| {
             let (x, y, z) = (i % nx, (i / nx) % ny, i / (nx * ny));
             let c = f.origin + Vector3::new(x as f64, y as f64, z as f64) * f.voxel;
-            f3(&(world_from_camera * Point3::from(c)).coords)
+            arr3(&(world_from_camera * Point3::from(c)).coords)
         })
         .collect();
     PointCloud {
