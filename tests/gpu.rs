@@ -108,3 +108,151 @@ fn gray_node_on_gpu_matches_cpu_node() {
     assert_eq!(cpu.data, gpu.data);
     assert_eq!((gpu.width, gpu.height, gpu.channels), (33, 17, 1));
 }
+
+/// Right image of a random-dot scene: a slanted background and a nearer square (occlusions).
+fn stereo_scene(w: usize, h: usize, seed: u64) -> (Vec<u8>, Vec<u8>) {
+    let left = bytes(w * h, seed);
+    let fill = bytes(w * h, seed + 1);
+    let disp = |x: usize, y: usize| {
+        if (w / 3..w / 2).contains(&x) && (h / 4..h / 2).contains(&y) {
+            14
+        } else {
+            3 + (x + 2 * y) / 25
+        }
+    };
+    let mut right = fill;
+    let mut order: Vec<(usize, usize)> = (0..h).flat_map(|y| (0..w).map(move |x| (x, y))).collect();
+    order.sort_by_key(|&(x, y)| disp(x, y));
+    for (x, y) in order {
+        let d = disp(x, y);
+        if x >= d {
+            right[y * w + x - d] = left[y * w + x];
+        }
+    }
+    (left, right)
+}
+
+#[test]
+fn sgm_kernels_match_the_cpu_path() {
+    use misslam_depth_sgm::gpu::SgmGpu;
+    use misslam_depth_sgm::sgm::{sgm, Scratch, SgmParams};
+    let Some(ctx) = gpu() else { return };
+    let mut kernels = SgmGpu::new(&ctx);
+    let cases = [
+        ("default (8 paths, census 9x7, 64 d)", SgmParams::default()),
+        (
+            "4 paths, adaptive P2, d from -3, 20 d, no sub-pixel",
+            SgmParams {
+                paths: 4,
+                p2_adaptive: true,
+                p2: 300,
+                min_disparity: -3,
+                max_disparity: 20,
+                subpixel: false,
+                uniqueness_pct: 15,
+                ..SgmParams::default()
+            },
+        ),
+        (
+            "d from 4, 33 d, census 7x9, no LR / median / speckles",
+            SgmParams {
+                min_disparity: 4,
+                max_disparity: 33,
+                census_width: 7,
+                census_height: 9,
+                lr_check: false,
+                median: false,
+                speckle_window: 0,
+                ..SgmParams::default()
+            },
+        ),
+    ];
+    for (w, h) in [(83, 37), (161, 120)] {
+        let (left, right) = stereo_scene(w, h, (w * 7 + h) as u64);
+        let mut mask = vec![1u8; w * h];
+        mask[..2 * w].fill(0);
+        for (i, (name, p)) in cases.iter().enumerate() {
+            let m = (i == 1).then_some(mask.as_slice());
+            let want = sgm(&left, &right, w, h, m, p, &mut Scratch::default()).unwrap();
+            let (got, timing) = kernels.run(&ctx, &left, &right, w, h, m, p).unwrap();
+            let valid = want.iter().filter(|v| v.is_finite()).count();
+            assert!(
+                valid > w * h / 3,
+                "{name}: the CPU output is dense enough to compare ({valid})"
+            );
+            let validity = got
+                .iter()
+                .zip(&want)
+                .filter(|(a, b)| a.is_finite() != b.is_finite())
+                .count();
+            let max_diff = got
+                .iter()
+                .zip(&want)
+                .filter(|(a, b)| a.is_finite() && b.is_finite())
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0f32, f32::max);
+            println!(
+                "{w}x{h} {name}: {validity} pixels differ in validity, max |diff| {max_diff:.2e} px over {valid} valid; GPU {:.1} ms ({timing:?})",
+                timing.total_ms
+            );
+            // Stated tolerance: the integers are the same; only the parabola's f32 division may
+            // round differently in WGSL (2.5 ulp), which can move a pixel across the LR or
+            // median thresholds: at most 0.1 % of pixels, and 1e-4 px.
+            assert!(
+                validity * 1000 <= w * h,
+                "{name}: {validity} of {} pixels differ in validity",
+                w * h
+            );
+            assert!(max_diff <= 1e-4, "{name}: max |diff| {max_diff} px");
+        }
+    }
+    // Beyond the kernel's disparity limit: a clear error.
+    let p = SgmParams {
+        max_disparity: 1024 + 1,
+        ..SgmParams::default()
+    };
+    let (l, r) = stereo_scene(40, 30, 1);
+    assert!(kernels.run(&ctx, &l, &r, 40, 30, None, &p).is_err());
+}
+
+#[test]
+fn depth_sgm_on_the_gpu_scores_as_on_the_cpu() {
+    // graphs/depth_sgm_phantom.toml with one line changed (`depth.device`), scored against the
+    // phantom's exact depth: the same disparities, so the same figures.
+    if gpu().is_none() {
+        return;
+    }
+    let mut scores = Vec::new();
+    for device in ["cpu", "gpu"] {
+        let sets: Vec<String> = [
+            "src.width=160",
+            "src.height=120",
+            "src.focal_px=175.0",
+            "depth.max_disparity=24",
+            "graph.frames.count=1",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .chain([format!("depth.device=\"{device}\"")])
+        .collect();
+        let report = common::run_graph_file(
+            "graphs/depth_sgm_phantom.toml",
+            &sets,
+            &common::tmp_dir(&format!("sgm-phantom-{device}")),
+        );
+        assert!(report.error.is_none(), "{device}: {:?}", report.error);
+        let eval = &report.metrics.eval;
+        let s = (
+            eval["depth.bad2_valid_pct"],
+            eval["depth.density_pct"],
+            eval["depth.mae_mm"],
+        );
+        println!(
+            "{device}: bad2 valid {:.3} %, density {:.1} %, MAE {:.3} mm",
+            s.0, s.1, s.2
+        );
+        assert!(s.1 > 80.0, "{device}: density {} %", s.1);
+        scores.push(s);
+    }
+    assert_eq!(scores[0], scores[1], "CPU and GPU score differently");
+}

@@ -198,6 +198,17 @@ impl GpuContext {
         self.queue.submit(Some(enc.finish()));
     }
 
+    /// Waits until everything submitted so far has run (for per-stage timings).
+    pub fn wait(&self) -> Result<(), GpuError> {
+        self.device
+            .poll(wgpu::PollType::Wait {
+                submission_index: None,
+                timeout: None,
+            })
+            .map(|_| ())
+            .map_err(|e| GpuError::Operation(e.to_string()))
+    }
+
     /// Copies `size` bytes of a `COPY_SRC` buffer back to the host and waits for them.
     pub fn read_back(&self, src: &wgpu::Buffer, size: u64) -> Result<Vec<u8>, GpuError> {
         let staging = self.device.create_buffer(&wgpu::BufferDescriptor {

@@ -1,14 +1,18 @@
-//! `depth.sgm`: semi-global matching (Hirschmueller, PAMI 2008) on rectified pairs, on the CPU.
-//! The algorithm is the plain library [`sgm`]; the node converts the pair to gray, masks the
-//! black border, and outputs disparity and depth (NaN where invalid).
+//! `depth.sgm`: semi-global matching (Hirschmueller, PAMI 2008) on rectified pairs, on the CPU
+//! ([`sgm::sgm`], SIMD) or the GPU ([`gpu::SgmGpu`], WGSL). The node converts the pair to gray,
+//! honours the left mask, and outputs disparity and depth (NaN where invalid).
 #![deny(missing_docs)]
 
+pub mod gpu;
+pub mod reference;
 pub mod sgm;
 
+use misslam_framework::gpu::GpuContext;
 use misslam_framework::{
     BuildContext, BuildError, DisparityMap, FloatMap, Flow, FrameInfo, Inputs, Node, NodeContext,
     NodeError, NodeResult, Outputs, PortSpec, PortType, Registry, StereoFrame, TypedPlugin,
 };
+use std::sync::Arc;
 
 /// Parameters of `depth.sgm`: those of the library.
 pub use sgm::SgmParams as Params;
@@ -16,6 +20,8 @@ pub use sgm::SgmParams as Params;
 /// The node.
 pub struct SgmNode {
     params: sgm::SgmParams,
+    /// The GPU kernels with `device` = "gpu" (or "auto" with an adapter).
+    gpu: Option<(Arc<GpuContext>, gpu::SgmGpu)>,
     scratch: sgm::Scratch,
     gray_l: Vec<u8>,
     gray_r: Vec<u8>,
@@ -31,15 +37,23 @@ impl SgmNode {
         pair.left.gray_into(&mut self.gray_l);
         pair.right.gray_into(&mut self.gray_r);
         let mask = pair.left_mask.as_ref().map(|m| m.data.as_slice());
-        let data = sgm::sgm(
-            &self.gray_l,
-            &self.gray_r,
-            w,
-            h,
-            mask,
-            &self.params,
-            &mut self.scratch,
-        )?;
+        let data = match &mut self.gpu {
+            Some((ctx, kernels)) => {
+                let (d, t) =
+                    kernels.run(ctx, &self.gray_l, &self.gray_r, w, h, mask, &self.params)?;
+                tracing::debug!("depth.sgm on the GPU: {t:?}");
+                d
+            }
+            None => sgm::sgm(
+                &self.gray_l,
+                &self.gray_r,
+                w,
+                h,
+                mask,
+                &self.params,
+                &mut self.scratch,
+            )?,
+        };
         Ok(FloatMap {
             width: w as u32,
             height: h as u32,
@@ -69,13 +83,22 @@ impl Node for SgmNode {
 }
 
 /// Builds the node.
-pub fn build(params: Params, _: &BuildContext) -> Result<SgmNode, BuildError> {
+pub fn build(params: Params, ctx: &BuildContext) -> Result<SgmNode, BuildError> {
     params.validate().map_err(|m| BuildError::Param {
         key: None,
         path: String::new(),
         message: m,
     })?;
+    let gpu = ctx
+        .gpu
+        .for_device(params.device, ctx.node_id)
+        .map_err(|e| BuildError::param("device", e.to_string()))?
+        .map(|c| {
+            let k = gpu::SgmGpu::new(&c);
+            (c, k)
+        });
     Ok(SgmNode {
+        gpu,
         params,
         scratch: sgm::Scratch::default(),
         gray_l: Vec::new(),
@@ -87,7 +110,7 @@ pub fn build(params: Params, _: &BuildContext) -> Result<SgmNode, BuildError> {
 pub fn register(registry: &mut Registry) -> Result<(), String> {
     registry.register(TypedPlugin::new(
         "depth.sgm",
-        "semi-global matching (census, 4/8 paths, sub-pixel, LR check, median, speckles) on the CPU",
+        "semi-global matching (census, 4/8 paths, sub-pixel, LR check, median, speckles) on the CPU (SIMD) or the GPU (WGSL)",
         vec![PortSpec::new("stereo", PortType::Stereo, "rectified pair; its left mask is honoured")],
         vec![
             PortSpec::new("disparity", PortType::Disparity, "left disparity, px, NaN invalid"),

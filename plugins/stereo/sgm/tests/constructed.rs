@@ -190,3 +190,110 @@ fn masked_pixels_get_no_disparity_and_bad_parameters_are_named() {
         .unwrap_err()
         .contains("more than 64 comparisons"));
 }
+
+/// Runs `f` on a rayon pool of `threads` threads.
+fn on_threads<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap()
+        .install(f)
+}
+
+/// Bitwise equality of two disparity images (NaN equal to NaN).
+fn same(a: &[f32], b: &[f32]) -> usize {
+    a.iter()
+        .zip(b)
+        .filter(|(x, y)| x.to_bits() != y.to_bits() && !(x.is_nan() && y.is_nan()))
+        .count()
+}
+
+#[test]
+fn the_fast_path_gives_exactly_the_reference_output() {
+    use misslam_depth_sgm::reference::{census_reference, sgm_reference};
+    // A slanted scene with texture, occlusions and a border; sizes not multiples of 16 or 64.
+    let (w, h) = (83, 37);
+    let left = dots(w, h, 11);
+    let right = shift(&left, w, h, |x, y| 3 + (x + 2 * y) / 20, &dots(w, h, 12));
+    let mut mask = vec![1u8; w * h];
+    mask[..w * 2].fill(0);
+    let cases = [
+        SgmParams::default(),
+        SgmParams {
+            paths: 4,
+            max_disparity: 13,
+            census_width: 5,
+            census_height: 5,
+            ..SgmParams::default()
+        },
+        SgmParams {
+            p2_adaptive: true,
+            p2: 300,
+            max_disparity: 20,
+            min_disparity: -3,
+            subpixel: false,
+            uniqueness_pct: 15,
+            ..SgmParams::default()
+        },
+        SgmParams {
+            min_disparity: 4,
+            max_disparity: 33,
+            census_width: 7,
+            census_height: 9,
+            lr_check: false,
+            median: false,
+            speckle_window: 0,
+            ..SgmParams::default()
+        },
+        SgmParams {
+            max_disparity: 2,
+            census_width: 3,
+            census_height: 3,
+            uniqueness_pct: 0,
+            ..SgmParams::default()
+        },
+    ];
+    for (i, p) in cases.iter().enumerate() {
+        let (cw, ch) = (p.census_width as usize, p.census_height as usize);
+        let mut c = Vec::new();
+        census(&left, w, h, cw, ch, &mut c);
+        assert_eq!(c, census_reference(&left, w, h, cw, ch), "census, case {i}");
+        let m = (i % 2 == 1).then_some(mask.as_slice());
+        let want = sgm_reference(&left, &right, w, h, m, p).unwrap();
+        assert!(
+            want.iter().filter(|v| v.is_finite()).count() > w * h / 3,
+            "case {i} is dense enough to mean something"
+        );
+        for threads in [1, 2] {
+            let got = on_threads(threads, || {
+                let mut s = Scratch::default();
+                // Twice with one scratch: buffers reused across frames must not leak state.
+                sgm(&right, &left, w, h, None, p, &mut s).unwrap();
+                sgm(&left, &right, w, h, m, p, &mut s).unwrap()
+            });
+            assert_eq!(same(&got, &want), 0, "case {i}, {threads} threads");
+        }
+    }
+}
+
+#[test]
+fn p2_beyond_the_lane_bound_and_a_wrong_mask_are_refused() {
+    let p = SgmParams {
+        p2: 5000,
+        ..SgmParams::default()
+    };
+    let e = p.validate().unwrap_err();
+    assert!(e.contains("`p2`"), "{e}");
+    let img = vec![0u8; 40 * 30];
+    let e = sgm(
+        &img,
+        &img,
+        40,
+        30,
+        Some(&[1u8; 10]),
+        &SgmParams::default(),
+        &mut Scratch::default(),
+    )
+    .unwrap_err();
+    assert!(e.contains("mask"), "{e}");
+}
