@@ -277,13 +277,19 @@ fn the_fast_path_gives_exactly_the_reference_output() {
 }
 
 #[test]
-fn p2_beyond_the_lane_bound_and_a_wrong_mask_are_refused() {
+fn p2_beyond_the_lane_bound_a_huge_uniqueness_and_a_wrong_mask_are_refused() {
     let p = SgmParams {
         p2: 5000,
         ..SgmParams::default()
     };
     let e = p.validate().unwrap_err();
     assert!(e.contains("`p2`"), "{e}");
+    let p = SgmParams {
+        uniqueness_pct: 5000,
+        ..SgmParams::default()
+    };
+    let e = p.validate().unwrap_err();
+    assert!(e.contains("`uniqueness_pct`"), "{e}");
     let img = vec![0u8; 40 * 30];
     let e = sgm(
         &img,
