@@ -114,39 +114,39 @@ pub fn bilateral(
             (-(d * d) / (2.0 * sigma_mm * sigma_mm)).exp()
         })
         .collect();
-    (0..w * h)
-        .into_par_iter()
-        .map(|i| {
-            let z = depth[i];
-            if !z.is_finite() {
-                return f32::NAN;
-            }
-            let (x, y) = ((i % w) as i64, (i / w) as i64);
-            let (mut num, mut den) = (0.0f32, 0.0f32);
-            for dy in -r..=r {
-                let yy = y + dy;
-                if yy < 0 || yy >= h as i64 {
+    let side = 2 * radius + 1;
+    let mut out = vec![f32::NAN; w * h];
+    out.par_chunks_mut(w.max(1))
+        .enumerate()
+        .for_each(|(y, row)| {
+            // The window clipped to the image once per row and pixel, then plain slices: the same
+            // taps in the same order as a per-tap bounds test, without its branches.
+            let (y0, y1) = (y.saturating_sub(radius), (y + radius).min(h - 1));
+            for (x, o) in row.iter_mut().enumerate() {
+                let z = depth[y * w + x];
+                if !z.is_finite() {
                     continue;
                 }
-                for dx in -r..=r {
-                    let xx = x + dx;
-                    if xx < 0 || xx >= w as i64 {
-                        continue;
+                let (x0, x1) = (x.saturating_sub(radius), (x + radius).min(w - 1));
+                let (mut num, mut den) = (0.0f32, 0.0f32);
+                for yy in y0..=y1 {
+                    let taps = &depth[yy * w + x0..=yy * w + x1];
+                    let s0 = (yy + radius - y) * side + (x0 + radius - x);
+                    for (&v, &sw) in taps.iter().zip(&spatial[s0..s0 + taps.len()]) {
+                        if !v.is_finite() {
+                            continue;
+                        }
+                        let k = ((v - z).abs() * lut_scale) as usize;
+                        let Some(&rw) = range.get(k) else { continue };
+                        let wgt = sw * rw;
+                        num += wgt * v;
+                        den += wgt;
                     }
-                    let v = depth[yy as usize * w + xx as usize];
-                    if !v.is_finite() {
-                        continue;
-                    }
-                    let k = ((v - z).abs() * lut_scale) as usize;
-                    let Some(&rw) = range.get(k) else { continue };
-                    let wgt = spatial[((dy + r) * (2 * r + 1) + dx + r) as usize] * rw;
-                    num += wgt * v;
-                    den += wgt;
                 }
+                *o = num / den;
             }
-            num / den
-        })
-        .collect()
+        });
+    out
 }
 
 /// Lifts depth to camera-frame vertices `Z K^-1 [u v 1]^T` and normals. A normal is the cross
@@ -257,6 +257,61 @@ mod tests {
         assert_eq!(m.iter().map(|&v| v as usize).sum::<usize>(), 9);
         assert_eq!(m[2 * w + 3], 1);
         assert_eq!(m[w + 1], 0);
+    }
+
+    #[test]
+    fn bilateral_equals_the_per_tap_definition() {
+        // The clipped-window loops must take the same taps in the same order as testing every
+        // tap against the image: equal bits, on a map with holes, at the borders and the corners.
+        let (w, h, radius, sigma_px, sigma_mm) = (23usize, 17usize, 3usize, 2.0f32, 1.5f32);
+        let mut s = 7u32;
+        let depth: Vec<f32> = (0..w * h)
+            .map(|i| {
+                s = s.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                if s >> 28 == 0 {
+                    f32::NAN
+                } else {
+                    60.0 + (i % w) as f32 * 0.3 + ((s >> 8) as f32 / (1u32 << 24) as f32) * 3.0
+                }
+            })
+            .collect();
+        let got = bilateral(&depth, w, h, radius, sigma_px, sigma_mm);
+        let r = radius as i64;
+        let lut_scale = 1024.0 / (4.0 * sigma_mm);
+        let range: Vec<f32> = (0..1024)
+            .map(|k| {
+                let d = (k as f32 + 0.5) / lut_scale;
+                (-(d * d) / (2.0 * sigma_mm * sigma_mm)).exp()
+            })
+            .collect();
+        for i in 0..w * h {
+            let z = depth[i];
+            if !z.is_finite() {
+                assert!(got[i].is_nan());
+                continue;
+            }
+            let (x, y) = ((i % w) as i64, (i / w) as i64);
+            let (mut num, mut den) = (0.0f32, 0.0f32);
+            for dy in -r..=r {
+                for dx in -r..=r {
+                    let (xx, yy) = (x + dx, y + dy);
+                    if xx < 0 || yy < 0 || xx >= w as i64 || yy >= h as i64 {
+                        continue;
+                    }
+                    let v = depth[yy as usize * w + xx as usize];
+                    if !v.is_finite() {
+                        continue;
+                    }
+                    let Some(&rw) = range.get(((v - z).abs() * lut_scale) as usize) else {
+                        continue;
+                    };
+                    let sw = (-((dx * dx + dy * dy) as f32) / (2.0 * sigma_px * sigma_px)).exp();
+                    num += sw * rw * v;
+                    den += sw * rw;
+                }
+            }
+            assert_eq!(got[i].to_bits(), (num / den).to_bits(), "pixel {i}");
+        }
     }
 
     #[test]
