@@ -5,7 +5,8 @@
 //! kernels compute the same integers as [`crate::sgm::sgm`]; the parity test runs both on
 //! Mesa's lavapipe in CI.
 
-use crate::sgm::{remove_speckles_with, SgmParams, SpeckleScratch};
+use crate::reference::{DIRS, DIRS4};
+use crate::sgm::{check_pair, remove_speckles_with, SgmParams, SpeckleScratch};
 use misslam_framework::gpu::{GpuContext, GpuError};
 use wgpu::util::DeviceExt;
 
@@ -22,19 +23,6 @@ pub const MEDIAN_WGSL: &str = include_str!("../../../../shaders/stereo/sgm_media
 const INVALID: f32 = -3.0e38;
 /// The aggregation kernel's largest disparity count (its per-invocation arrays).
 const MAX_D: u32 = 1024;
-
-/// Directions as (dx, dy), in the order of [`crate::reference`].
-const DIRS8: [(i32, i32); 8] = [
-    (1, 0),
-    (1, 1),
-    (0, 1),
-    (-1, 1),
-    (-1, 0),
-    (-1, -1),
-    (0, -1),
-    (1, -1),
-];
-const DIRS4: [(i32, i32); 4] = [(1, 0), (0, 1), (-1, 0), (0, -1)];
 
 /// Milliseconds of one GPU pair, each stage waited for (the stages' sum is a little above an
 /// unsynchronised run).
@@ -96,13 +84,7 @@ impl SgmGpu {
         p: &SgmParams,
     ) -> Result<(Vec<f32>, SgmGpuTiming), String> {
         let t_all = std::time::Instant::now();
-        p.validate()?;
-        if left.len() != w * h || right.len() != w * h {
-            return Err(format!("images must be {w}x{h} gray"));
-        }
-        if valid.is_some_and(|m| m.len() != w * h) {
-            return Err(format!("the mask must be {w}x{h}"));
-        }
+        check_pair(left, right, w, h, valid, p)?;
         if p.max_disparity > MAX_D {
             return Err(format!(
                 "`max_disparity` {} exceeds the GPU kernel's {MAX_D}",
@@ -179,7 +161,7 @@ impl SgmGpu {
             (tiles.0, tiles.1, 2),
         );
         stage(ctx, &mut timing.census_ms)?;
-        let dirs: &[(i32, i32)] = if p.paths == 8 { &DIRS8 } else { &DIRS4 };
+        let dirs: &[(isize, isize)] = if p.paths == 8 { &DIRS } else { &DIRS4 };
         let max_x = dev.limits().max_compute_workgroups_per_dimension;
         for &(dx, dy) in dirs {
             let paths = if dy == 0 {

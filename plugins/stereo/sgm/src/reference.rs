@@ -3,7 +3,7 @@
 //! times the fast path) and kept only as the oracle: [`crate::sgm::sgm`] and the WGSL kernel are
 //! tested to give exactly its output.
 
-use crate::sgm::{finish, path_step, SgmParams};
+use crate::sgm::{check_pair, finish, path_step, SgmParams};
 
 /// Census transform, one pixel at a time (same bits as [`crate::sgm::census`]).
 pub fn census_reference(img: &[u8], w: usize, h: usize, cw: usize, ch: usize) -> Vec<u64> {
@@ -42,10 +42,7 @@ pub fn sgm_reference(
     valid: Option<&[u8]>,
     p: &SgmParams,
 ) -> Result<Vec<f32>, String> {
-    p.validate()?;
-    if left.len() != w * h || right.len() != w * h {
-        return Err(format!("images must be {w}x{h} gray"));
-    }
+    check_pair(left, right, w, h, valid, p)?;
     let nd = p.max_disparity as usize;
     let dmin = p.min_disparity as isize;
     let (cw, ch) = (p.census_width as usize, p.census_height as usize);
@@ -124,8 +121,8 @@ fn winner(s: &[u16], p: &SgmParams) -> f32 {
     d + p.min_disparity as f32
 }
 
-/// Directions as (dx, dy).
-const DIRS: [(isize, isize); 8] = [
+/// Directions as (dx, dy); the GPU kernels run them in this order too.
+pub const DIRS: [(isize, isize); 8] = [
     (1, 0),
     (1, 1),
     (0, 1),
@@ -136,14 +133,13 @@ const DIRS: [(isize, isize); 8] = [
     (1, -1),
 ];
 
+/// The four directions of `paths = 4`.
+pub const DIRS4: [(isize, isize); 4] = [(1, 0), (0, 1), (-1, 0), (0, -1)];
+
 /// One traversal per direction; each keeps L of the previous row (or pixel, for rows).
 fn aggregate(img: &[u8], w: usize, h: usize, nd: usize, p: &SgmParams, cost: &[u8]) -> Vec<u16> {
     let mut sum = vec![0u16; w * h * nd];
-    let dirs: &[(isize, isize)] = if p.paths == 8 {
-        &DIRS
-    } else {
-        &[(1, 0), (0, 1), (-1, 0), (0, -1)]
-    };
+    let dirs: &[(isize, isize)] = if p.paths == 8 { &DIRS } else { &DIRS4 };
     let mut prev_row = vec![0u16; w * nd];
     let mut cur_row = vec![0u16; w * nd];
     let mut tmp = vec![0u16; nd];

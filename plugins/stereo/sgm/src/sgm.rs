@@ -320,6 +320,25 @@ impl Ctx<'_> {
     }
 }
 
+/// The checks every SGM entry point makes: the parameters, the image sizes and the mask's.
+pub fn check_pair(
+    left: &[u8],
+    right: &[u8],
+    w: usize,
+    h: usize,
+    valid: Option<&[u8]>,
+    p: &SgmParams,
+) -> Result<(), String> {
+    p.validate()?;
+    if left.len() != w * h || right.len() != w * h {
+        return Err(format!("images must be {w}x{h} gray"));
+    }
+    if valid.is_some_and(|m| m.len() != w * h) {
+        return Err(format!("the mask must be {w}x{h}"));
+    }
+    Ok(())
+}
+
 /// Disparity of the left image (px, NaN invalid), from `left` and `right` gray images.
 /// `valid` masks pixels that may not get a disparity (e.g. the black border).
 pub fn sgm(
@@ -331,13 +350,7 @@ pub fn sgm(
     p: &SgmParams,
     s: &mut Scratch,
 ) -> Result<Vec<f32>, String> {
-    p.validate()?;
-    if left.len() != w * h || right.len() != w * h {
-        return Err(format!("images must be {w}x{h} gray"));
-    }
-    if valid.is_some_and(|m| m.len() != w * h) {
-        return Err(format!("the mask must be {w}x{h}"));
-    }
+    check_pair(left, right, w, h, valid, p)?;
     let (cw, ch) = (p.census_width as usize, p.census_height as usize);
     let Scratch {
         census_l,
