@@ -3,8 +3,12 @@
 //! honours the left mask, and outputs disparity and depth (NaN where invalid).
 #![deny(missing_docs)]
 
+mod aggregate;
+mod census;
+mod filters;
 pub mod gpu;
 pub mod reference;
+mod select;
 pub mod sgm;
 
 use misslam_framework::gpu::GpuContext;

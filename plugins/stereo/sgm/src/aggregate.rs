@@ -1,0 +1,494 @@
+//! The two aggregation passes of the fast SGM path (see [`crate::sgm`]): matching costs one row
+//! at a time, 16 disparities per step in i16 lanes, the previous row of each path updated in place.
+
+use crate::sgm::SgmParams;
+
+/// Disparities per SIMD step: 16 i16 lanes, one AVX2 register.
+pub(crate) const LANES: usize = 16;
+/// Lanes (at FAR) before each pixel's disparities in the path buffers, so the d - 1 and d + 1
+/// neighbours of every step are plain loads.
+pub(crate) const GUARD: usize = LANES;
+/// Cost of the padding lanes beyond `max_disparity`: saturating adds keep them at FAR, so they
+/// never win a minimum.
+pub(crate) const FAR: i16 = i16::MAX;
+
+/// Row buffers of one aggregation pass.
+#[derive(Default)]
+pub(crate) struct PassScratch {
+    /// Costs of the current row, W x D' (padding lanes FAR).
+    cost: Vec<i16>,
+    /// The right census row reversed and padded, so one pixel's candidates are contiguous.
+    rev: Vec<u64>,
+    /// Paths from the previous row (NV = 3 with 8 paths, 1 with 4): W + 2 slots of NV segments
+    /// of GUARD + D' lanes (the paths of one pixel side by side, one memory stream); slots 0
+    /// and W + 1 are zero, the start of a path at the image border.
+    paths: Vec<i16>,
+    /// Minimum over d of each slot of `paths`.
+    mins: Vec<i16>,
+    /// The L held back a pixel (see [`pass_n`]): the previous pixel's, and this pixel's.
+    held: Vec<i16>,
+    holding: Vec<i16>,
+    /// The path along the row: the previous pixel's L, overwritten in place (one guarded slot).
+    row_path: Vec<i16>,
+}
+
+/// One step of the path recurrence for all disparities:
+/// `out[d] = cost[d] + min(prev[d], prev[d-1] + p1, prev[d+1] + p1, min(prev) + p2) - min(prev)`.
+/// The scalar statement of what the SIMD passes compute (and the reference uses).
+#[inline]
+pub fn path_step(cost: &[u8], prev: &[u16], p1: u16, p2: u16, out: &mut [u16]) {
+    let n = cost.len();
+    if n == 0 {
+        return;
+    }
+    let min_prev = prev.iter().copied().min().unwrap_or(0);
+    let jump = min_prev.saturating_add(p2);
+    let edge = |d: usize, other: u16| prev[d].min(jump).min(other.saturating_add(p1));
+    if n == 1 {
+        out[0] = cost[0] as u16 + (prev[0].min(jump) - min_prev);
+        return;
+    }
+    out[0] = cost[0] as u16 + (edge(0, prev[1]) - min_prev);
+    out[n - 1] = cost[n - 1] as u16 + (edge(n - 1, prev[n - 2]) - min_prev);
+    for ((o, &c), w) in out[1..n - 1]
+        .iter_mut()
+        .zip(&cost[1..n - 1])
+        .zip(prev.windows(3))
+    {
+        let best = w[1]
+            .min(jump)
+            .min(w[0].saturating_add(p1))
+            .min(w[2].saturating_add(p1));
+        *o = c as u16 + (best - min_prev);
+    }
+}
+
+/// What both passes read.
+pub(crate) struct Ctx<'a> {
+    pub(crate) img: &'a [u8],
+    pub(crate) cl: &'a [u64],
+    pub(crate) cr: &'a [u64],
+    pub(crate) w: usize,
+    pub(crate) h: usize,
+    pub(crate) nd: usize,
+    /// D rounded up to LANES.
+    pub(crate) dp: usize,
+    pub(crate) p: &'a SgmParams,
+    /// dx of the paths that come from the previous row.
+    pub(crate) vdx: &'a [isize],
+}
+
+impl Ctx<'_> {
+    pub(crate) fn stride(&self) -> usize {
+        GUARD + self.dp
+    }
+}
+
+/// Where a pass gets its matching costs: computed from the census images, computed and kept
+/// (H x W x D u8) for the other pass, or read from that volume.
+pub(crate) enum Costs<'a> {
+    Compute,
+    Store(&'a mut [u8]),
+    Load(&'a [u8]),
+}
+
+/// One aggregation pass: forward runs rows top-down and pixels left to right with the paths
+/// from above and from the left; backward the mirror. Each row's sums (plus `init`'s, when given)
+/// go to `out` (the whole image, or one row buffer), then `after_row(y, row)` runs.
+pub(crate) fn pass(
+    forward: bool,
+    ctx: &Ctx,
+    ps: &mut PassScratch,
+    init: Option<&[i16]>,
+    costs: Costs,
+    out: &mut [i16],
+    after_row: impl FnMut(usize, &mut [i16]),
+) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("popcnt")
+    {
+        // SAFETY: the CPU supports AVX2 and POPCNT (checked just above).
+        unsafe { pass_avx2(forward, ctx, ps, init, costs, out, after_row) };
+        return;
+    }
+    pass_generic::<Portable>(forward, ctx, ps, init, costs, out, after_row);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,popcnt")]
+fn pass_avx2(
+    forward: bool,
+    ctx: &Ctx,
+    ps: &mut PassScratch,
+    init: Option<&[i16]>,
+    costs: Costs,
+    out: &mut [i16],
+    after_row: impl FnMut(usize, &mut [i16]),
+) {
+    pass_generic::<Avx2>(forward, ctx, ps, init, costs, out, after_row);
+}
+
+/// 16 lanes of `s` from `at`.
+#[inline(always)]
+pub(crate) fn lanes(s: &[i16], at: usize) -> &[i16; LANES] {
+    s[at..at + LANES]
+        .try_into()
+        .unwrap_or_else(|_| unreachable!("a slice of LANES elements"))
+}
+
+#[inline(always)]
+pub(crate) fn lanes_mut(s: &mut [i16], at: usize) -> &mut [i16; LANES] {
+    (&mut s[at..at + LANES])
+        .try_into()
+        .unwrap_or_else(|_| unreachable!("a slice of LANES elements"))
+}
+
+/// The recurrence on 16 disparities, from the previous pixel's L at d - 16.. (`lo`), d..
+/// (`a`) and d + 16.. (`hi`): returns L, folds it into the running minimum `mn` and adds it to
+/// `acc`.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn step(
+    cost: &[i16; LANES],
+    lo: &[i16; LANES],
+    a: &[i16; LANES],
+    hi: &[i16; LANES],
+    min_prev: i16,
+    p1: i16,
+    jump: i16,
+    mn: &mut [i16; LANES],
+    acc: &mut [i16; LANES],
+) -> [i16; LANES] {
+    let am: [i16; LANES] = std::array::from_fn(|l| if l == 0 { lo[LANES - 1] } else { a[l - 1] });
+    let ap: [i16; LANES] = std::array::from_fn(|l| if l == LANES - 1 { hi[0] } else { a[l + 1] });
+    let mut out = [0i16; LANES];
+    for l in 0..LANES {
+        let best = a[l]
+            .min(am[l].saturating_add(p1))
+            .min(ap[l].saturating_add(p1))
+            .min(jump);
+        let v = cost[l].saturating_add(best - min_prev);
+        out[l] = v;
+        mn[l] = mn[l].min(v);
+        acc[l] = acc[l].saturating_add(v);
+    }
+    out
+}
+
+/// The lane arithmetic of a pass: portable arrays (SSE2 through autovectorisation) or AVX2
+/// intrinsics (the shuffles for d - 1 and d + 1 do not autovectorise well).
+trait Kernel {
+    #[allow(clippy::too_many_arguments)]
+    fn step(
+        cost: &[i16; LANES],
+        lo: &[i16; LANES],
+        a: &[i16; LANES],
+        hi: &[i16; LANES],
+        min_prev: i16,
+        p1: i16,
+        jump: i16,
+        mn: &mut [i16; LANES],
+        acc: &mut [i16; LANES],
+    ) -> [i16; LANES];
+}
+
+struct Portable;
+
+impl Kernel for Portable {
+    #[inline(always)]
+    fn step(
+        cost: &[i16; LANES],
+        lo: &[i16; LANES],
+        a: &[i16; LANES],
+        hi: &[i16; LANES],
+        min_prev: i16,
+        p1: i16,
+        jump: i16,
+        mn: &mut [i16; LANES],
+        acc: &mut [i16; LANES],
+    ) -> [i16; LANES] {
+        step(cost, lo, a, hi, min_prev, p1, jump, mn, acc)
+    }
+}
+
+/// Only named by [`pass_avx2`], which runs after AVX2 was detected.
+#[cfg(target_arch = "x86_64")]
+struct Avx2;
+
+#[cfg(target_arch = "x86_64")]
+impl Kernel for Avx2 {
+    #[inline(always)]
+    fn step(
+        cost: &[i16; LANES],
+        lo: &[i16; LANES],
+        a: &[i16; LANES],
+        hi: &[i16; LANES],
+        min_prev: i16,
+        p1: i16,
+        jump: i16,
+        mn: &mut [i16; LANES],
+        acc: &mut [i16; LANES],
+    ) -> [i16; LANES] {
+        // SAFETY: `Avx2` is used only inside `pass_avx2`, which is called after
+        // `is_x86_feature_detected!("avx2")`.
+        unsafe { step_avx2(cost, lo, a, hi, min_prev, p1, jump, mn, acc) }
+    }
+}
+
+/// [`step`] with AVX2 intrinsics: d - 1 is `alignr` of the chunk with the last lane of the one
+/// below, d + 1 with the first lane of the one above.
+#[cfg(target_arch = "x86_64")]
+#[allow(clippy::too_many_arguments)]
+#[target_feature(enable = "avx2")]
+#[inline]
+fn step_avx2(
+    cost: &[i16; LANES],
+    lo: &[i16; LANES],
+    a: &[i16; LANES],
+    hi: &[i16; LANES],
+    min_prev: i16,
+    p1: i16,
+    jump: i16,
+    mn: &mut [i16; LANES],
+    acc: &mut [i16; LANES],
+) -> [i16; LANES] {
+    use std::arch::x86_64::*;
+    // SAFETY: [i16; 16] and __m256i have the same size and every bit pattern is valid in both.
+    let v = |x: &[i16; LANES]| unsafe { std::mem::transmute::<[i16; LANES], __m256i>(*x) };
+    let (lo, a, hi, c) = (v(lo), v(a), v(hi), v(cost));
+    let am = _mm256_alignr_epi8::<14>(a, _mm256_permute2x128_si256::<0x21>(lo, a));
+    let ap = _mm256_alignr_epi8::<2>(_mm256_permute2x128_si256::<0x21>(a, hi), a);
+    let p1v = _mm256_set1_epi16(p1);
+    let best = _mm256_min_epi16(
+        _mm256_min_epi16(a, _mm256_set1_epi16(jump)),
+        _mm256_min_epi16(_mm256_adds_epi16(am, p1v), _mm256_adds_epi16(ap, p1v)),
+    );
+    let out = _mm256_adds_epi16(c, _mm256_sub_epi16(best, _mm256_set1_epi16(min_prev)));
+    // SAFETY: as above, back to arrays.
+    let arr = |x: __m256i| unsafe { std::mem::transmute::<__m256i, [i16; LANES]>(x) };
+    *mn = arr(_mm256_min_epi16(v(mn), out));
+    *acc = arr(_mm256_adds_epi16(v(acc), out));
+    arr(out)
+}
+
+/// Appends `slots` path slots: GUARD lanes at FAR, then D' disparities at 0 (a path start:
+/// L = C), and a trailing guard.
+fn push_paths(buf: &mut Vec<i16>, slots: usize, dp: usize) {
+    for _ in 0..slots {
+        buf.extend(std::iter::repeat_n(FAR, GUARD));
+        buf.extend(std::iter::repeat_n(0, dp));
+    }
+    buf.extend(std::iter::repeat_n(FAR, GUARD));
+}
+
+#[inline(always)]
+fn pass_generic<K: Kernel>(
+    forward: bool,
+    ctx: &Ctx,
+    ps: &mut PassScratch,
+    init: Option<&[i16]>,
+    costs: Costs,
+    out: &mut [i16],
+    after_row: impl FnMut(usize, &mut [i16]),
+) {
+    if ctx.vdx.len() == 3 {
+        pass_n::<3, K>(forward, ctx, ps, init, costs, out, after_row);
+    } else {
+        pass_n::<1, K>(forward, ctx, ps, init, costs, out, after_row);
+    }
+}
+
+/// The pass with `NV` paths from the previous row (3 with 8 paths, 1 with 4) and one along the
+/// row. The previous-row paths are updated in place: pixel x reads slot x - dx + 1 and its new
+/// L goes to slot x + 1 once the pixel is done; for the path whose dx equals the traversal step
+/// the next pixel still needs the old slot x + 1, so that write waits one pixel.
+#[inline(always)]
+fn pass_n<const NV: usize, K: Kernel>(
+    forward: bool,
+    ctx: &Ctx,
+    ps: &mut PassScratch,
+    init: Option<&[i16]>,
+    mut costs: Costs,
+    out: &mut [i16],
+    mut after_row: impl FnMut(usize, &mut [i16]),
+) {
+    let (w, h, nd, dp, p) = (ctx.w, ctx.h, ctx.nd, ctx.dp, ctx.p);
+    let stride = ctx.stride();
+    let mut vdx = [0isize; NV];
+    vdx.copy_from_slice(ctx.vdx);
+    let step_x: isize = if forward { 1 } else { -1 };
+    let row_len = w * dp;
+    let whole = out.len() == h * row_len;
+    ps.paths.clear();
+    push_paths(&mut ps.paths, NV * (w + 2), dp);
+    ps.mins.clear();
+    ps.mins.resize(NV * (w + 2), 0);
+    ps.held.clear();
+    ps.held.resize(dp, 0);
+    ps.holding.clear();
+    ps.holding.resize(dp, 0);
+    ps.cost.clear();
+    ps.cost.resize(row_len, FAR);
+    let pad = nd + p.min_disparity.unsigned_abs() as usize + 1;
+    ps.rev.clear();
+    ps.rev.resize(w + 2 * pad, 0);
+    let unknown = i16::from(p.unknown_cost());
+    let p1 = p.p1 as i16;
+    for k in 0..h {
+        let y = if forward { k } else { h - 1 - k };
+        match &mut costs {
+            Costs::Compute => cost_row(ctx, y, pad, unknown, &mut ps.rev, &mut ps.cost),
+            Costs::Store(vol) => {
+                cost_row(ctx, y, pad, unknown, &mut ps.rev, &mut ps.cost);
+                let dst = &mut vol[y * w * nd..(y + 1) * w * nd];
+                for (d, c) in dst.chunks_exact_mut(nd).zip(ps.cost.chunks_exact(dp)) {
+                    for (o, &v) in d.iter_mut().zip(c) {
+                        *o = v as u8;
+                    }
+                }
+            }
+            Costs::Load(vol) => {
+                let src = &vol[y * w * nd..(y + 1) * w * nd];
+                for (c, d) in ps.cost.chunks_exact_mut(dp).zip(src.chunks_exact(nd)) {
+                    for (o, &v) in c.iter_mut().zip(d) {
+                        *o = i16::from(v);
+                    }
+                }
+            }
+        }
+        // The path along the row starts from zero at the border (L = C).
+        ps.row_path.clear();
+        push_paths(&mut ps.row_path, 1, dp);
+        let mut row_min = 0i16;
+        let mut held_min = 0i16;
+        let prev_y = if forward { y.wrapping_sub(1) } else { y + 1 };
+        let o = if whole { y * row_len } else { 0 };
+        let out_row = &mut out[o..o + row_len];
+        for j in 0..w {
+            let x = if forward { j } else { w - 1 - j };
+            let g = ctx.img[y * w + x];
+            let p2_from = |xp: usize, yp: usize| -> i16 {
+                if xp < w && yp < h {
+                    p.p2_at(u16::from(g.abs_diff(ctx.img[yp * w + xp]))) as i16
+                } else {
+                    0 // a path start: min(prev) = 0 and every term is >= 0, P2 plays no part
+                }
+            };
+            let mut slot = [0usize; NV];
+            let mut jump = [0i16; NV];
+            let mut min_prev = [0i16; NV];
+            for v in 0..NV {
+                // Slot of the previous pixel on this path: x - dx, shifted by the zero slot.
+                let s = (x as isize - vdx[v] + 1) as usize;
+                slot[v] = s;
+                min_prev[v] = ps.mins[v * (w + 2) + s];
+                let p2 = if k == 0 {
+                    0
+                } else {
+                    p2_from(s.wrapping_sub(1), prev_y)
+                };
+                jump[v] = min_prev[v] + p2;
+            }
+            let xh = if forward { x.wrapping_sub(1) } else { x + 1 };
+            let jump_h = row_min + if j == 0 { 0 } else { p2_from(xh, y) };
+            let init_cell = init.map(|s| &s[y * row_len + x * dp..y * row_len + (x + 1) * dp]);
+            // The row of sums starts from `init` (the other pass's sums) or zero.
+            let acc_row = &mut out_row[x * dp..(x + 1) * dp];
+            match init_cell {
+                Some(s) => acc_row.copy_from_slice(s),
+                None => acc_row.fill(0),
+            }
+            let chunks = dp / LANES;
+            // One path at a time over all disparities, so its window of the previous L stays in
+            // registers: three aligned chunks (d - 16.., d.., d + 16..) that roll along d, so a
+            // chunk can be overwritten in place once read; the d - 1 and d + 1 neighbours are
+            // shuffled from them.
+            for v in 0..NV {
+                let base = (slot[v] * NV + v) * stride + GUARD;
+                let delayed = vdx[v] == step_x;
+                let own = ((x + 1) * NV + v) * stride + GUARD;
+                let (mut lo, mut a) = (*lanes(&ps.paths, base - LANES), *lanes(&ps.paths, base));
+                let mut mn = [FAR; LANES];
+                for q in 0..chunks {
+                    let at = q * LANES;
+                    let hi = *lanes(&ps.paths, base + at + LANES);
+                    let c = lanes(&ps.cost, x * dp + at);
+                    let acc = lanes_mut(acc_row, at);
+                    let l = K::step(c, &lo, &a, &hi, min_prev[v], p1, jump[v], &mut mn, acc);
+                    (lo, a) = (a, hi);
+                    if delayed {
+                        // Slot x + 1 is the next pixel's predecessor: the previous pixel's L
+                        // goes into the slot this pixel reads (chunk by chunk, once read) and
+                        // this one is held back.
+                        if j > 0 {
+                            *lanes_mut(&mut ps.paths, base + at) = *lanes(&ps.held, at);
+                        }
+                        *lanes_mut(&mut ps.holding, at) = l;
+                    } else {
+                        *lanes_mut(&mut ps.paths, own + at) = l;
+                    }
+                }
+                let new_min = mn.iter().copied().fold(FAR, i16::min);
+                if delayed {
+                    if j > 0 {
+                        ps.mins[v * (w + 2) + slot[v]] = held_min;
+                    }
+                    held_min = new_min;
+                } else {
+                    ps.mins[v * (w + 2) + x + 1] = new_min;
+                }
+            }
+            let (mut lo, mut a) = (*lanes(&ps.row_path, 0), *lanes(&ps.row_path, GUARD));
+            let mut mn = [FAR; LANES];
+            for q in 0..chunks {
+                let at = q * LANES;
+                let hi = *lanes(&ps.row_path, GUARD + at + LANES);
+                let c = lanes(&ps.cost, x * dp + at);
+                let acc = lanes_mut(acc_row, at);
+                let l = K::step(c, &lo, &a, &hi, row_min, p1, jump_h, &mut mn, acc);
+                (lo, a) = (a, hi);
+                *lanes_mut(&mut ps.row_path, GUARD + at) = l;
+            }
+            row_min = mn.iter().copied().fold(FAR, i16::min);
+            std::mem::swap(&mut ps.held, &mut ps.holding);
+        }
+        // The last pixel's held-back L.
+        for (v, &dx) in vdx.iter().enumerate() {
+            if dx == step_x {
+                let x_last = if forward { w - 1 } else { 0 };
+                let s = ((x_last + 1) * NV + v) * stride + GUARD;
+                ps.paths[s..s + dp].copy_from_slice(&ps.held);
+                ps.mins[v * (w + 2) + x_last + 1] = held_min;
+            }
+        }
+        after_row(y, out_row);
+    }
+}
+
+/// Hamming costs of row `y` for every pixel and disparity into `cost` (W x D', padding lanes
+/// untouched at FAR); a partner outside the right image costs `unknown`.
+#[inline(always)]
+fn cost_row(ctx: &Ctx, y: usize, pad: usize, unknown: i16, rev: &mut [u64], cost: &mut [i16]) {
+    let (w, nd, dp) = (ctx.w, ctx.nd, ctx.dp);
+    let dmin = ctx.p.min_disparity as isize;
+    let cr = &ctx.cr[y * w..(y + 1) * w];
+    // rev[pad + w - 1 - xr] = cr[xr]: for a left pixel x the partners x - d - dmin, d = 0.., are
+    // rev[pad + w - 1 - x + dmin + d], contiguous in d.
+    for (xr, &c) in cr.iter().enumerate() {
+        rev[pad + w - 1 - xr] = c;
+    }
+    for (x, &c) in ctx.cl[y * w..(y + 1) * w].iter().enumerate() {
+        let t0 = (pad as isize + w as isize - 1 - x as isize + dmin) as usize;
+        let cell = &mut cost[x * dp..x * dp + nd];
+        for (o, &r) in cell.iter_mut().zip(&rev[t0..t0 + nd]) {
+            *o = (c ^ r).count_ones() as i16;
+        }
+        // Valid d: 0 <= x - d - dmin < w.
+        let hi = x as isize - dmin; // largest valid d
+        let lo = x as isize - dmin - w as isize + 1; // smallest valid d
+        let first_bad_hi = (hi + 1).clamp(0, nd as isize) as usize;
+        cell[first_bad_hi..].fill(unknown);
+        let end_bad_lo = lo.clamp(0, nd as isize) as usize;
+        cell[..end_bad_lo].fill(unknown);
+    }
+}
