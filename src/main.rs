@@ -178,6 +178,34 @@ enum BenchCommand {
         #[arg(long)]
         out: Option<PathBuf>,
     },
+    /// SGM on the GPU (WGSL kernels) against the CPU path on the same pair in the same run:
+    /// median ms per pair (upload and readback included), the stage breakdown, the parity.
+    SgmGpu {
+        /// Left image (PNG, PGM; converted to gray); without it a random-dot pair is made.
+        #[arg(long, requires = "right")]
+        left: Option<PathBuf>,
+        /// Right image.
+        #[arg(long, requires = "left")]
+        right: Option<PathBuf>,
+        /// Width of the random-dot pair.
+        #[arg(long, default_value_t = 640)]
+        width: usize,
+        /// Height of the random-dot pair.
+        #[arg(long, default_value_t = 480)]
+        height: usize,
+        /// Disparities searched.
+        #[arg(long, default_value_t = 128)]
+        disparities: u32,
+        /// Aggregation paths, 4 or 8.
+        #[arg(long, default_value_t = 8)]
+        paths: u32,
+        /// Timed runs (medians are reported).
+        #[arg(long, default_value_t = 50)]
+        repeat: usize,
+        /// Write the figures as JSON here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// Render speed of the phantom (both views and all GT) per scene at 640x480 and 360x288.
     Phantom {
         /// Frames per configuration.
@@ -349,6 +377,50 @@ fn run(command: Command) -> anyhow::Result<()> {
             }
             if let Some(path) = out {
                 write_json(&path, &rows)?;
+            }
+            Ok(())
+        }
+        Command::Bench {
+            which:
+                BenchCommand::SgmGpu {
+                    left,
+                    right,
+                    width,
+                    height,
+                    disparities,
+                    paths,
+                    repeat,
+                    out,
+                },
+        } => {
+            let p = misslam_depth_sgm::sgm::SgmParams {
+                max_disparity: disparities,
+                paths,
+                ..Default::default()
+            };
+            let pair = left.as_deref().zip(right.as_deref());
+            let r = misslam::bench::sgm_gpu(pair, (width, height), &p, repeat)
+                .map_err(anyhow::Error::msg)?;
+            let s = &r.stages_ms;
+            println!(
+                "SGM {}x{}, {} disparities, {} paths on {}",
+                r.width, r.height, r.disparities, r.paths, r.adapter
+            );
+            println!(
+                "GPU {:.3} ms per pair (median of {}, fastest {:.3}); CPU ({} threads) {:.1} ms: {:.1}x",
+                r.gpu_ms, r.runs, r.gpu_min_ms, r.cpu_threads, r.cpu_ms, r.speedup
+            );
+            println!(
+                "stages ({}): upload {:.3}, census {:.3}, aggregate {:.3}, select {:.3}, median {:.3}, readback {:.3}, speckles {:.3}, total {:.3} ms",
+                if s.gpu_timestamps { "GPU timestamps" } else { "each waited for" },
+                s.upload_ms, s.census_ms, s.aggregate_ms, s.select_ms, s.median_ms, s.readback_ms, s.speckle_ms, s.total_ms
+            );
+            println!(
+                "parity with the CPU: {} pixels differ in validity, max |diff| {:.2e} px; density {:.1} %",
+                r.validity_differs, r.max_abs_diff_px, r.density_pct
+            );
+            if let Some(path) = out {
+                write_json(&path, &r)?;
             }
             Ok(())
         }

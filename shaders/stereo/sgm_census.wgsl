@@ -8,13 +8,24 @@ struct Params {
     height: u32,
     radius_x: u32,
     radius_y: u32,
+    // Word offset of the right image in `images`.
+    right_words: u32,
+    pad0: u32,
+    pad1: u32,
+    pad2: u32,
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
-// Gray levels, one per u32: the left image, then the right one.
+// Gray levels, four per word (little-endian): the left image, then the right one from word
+// `right_words`.
 @group(0) @binding(1) var<storage, read> images: array<u32>;
 // (hi, lo) per pixel, left then right.
 @group(0) @binding(2) var<storage, read_write> codes: array<vec2<u32>>;
+
+fn gray(image: u32, i: u32) -> u32 {
+    let j = image * params.right_words * 4u + i;
+    return (images[j >> 2u] >> ((j & 3u) * 8u)) & 0xffu;
+}
 
 @compute @workgroup_size(8, 8, 1)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
@@ -23,8 +34,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (gid.x >= w || gid.y >= h) {
         return;
     }
-    let base = gid.z * w * h;
-    let c = images[base + gid.y * w + gid.x];
+    let c = gray(gid.z, gid.y * w + gid.x);
     let rx = i32(params.radius_x);
     let ry = i32(params.radius_y);
     var hi = 0u;
@@ -38,11 +48,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             let yy = i32(gid.y) + dy;
             var bit = 0u;
             if (xx >= 0 && yy >= 0 && xx < i32(w) && yy < i32(h)) {
-                bit = select(0u, 1u, images[base + u32(yy) * w + u32(xx)] < c);
+                bit = select(0u, 1u, gray(gid.z, u32(yy) * w + u32(xx)) < c);
             }
             hi = (hi << 1u) | (lo >> 31u);
             lo = (lo << 1u) | bit;
         }
     }
-    codes[base + gid.y * w + gid.x] = vec2<u32>(hi, lo);
+    codes[gid.z * w * h + gid.y * w + gid.x] = vec2<u32>(hi, lo);
 }

@@ -1,34 +1,51 @@
-//! SGM on the GPU (`shaders/stereo/sgm_*.wgsl`): census of both images, aggregation along each
-//! of the 4 or 8 directions (one workgroup per path, the disparities shared by its invocations),
-//! winner-takes-all with the uniqueness margin, the parabola and the left-right check, and the
-//! 3x3 median. Speckle removal (a sequential flood fill) runs on the CPU after readback. The
-//! kernels compute the same integers as [`crate::sgm::sgm`]; the parity test runs both on
-//! Mesa's lavapipe in CI.
+//! SGM on the GPU (`shaders/stereo/sgm_*.wgsl`), one submission per pair:
+//!
+//! 1. census of both images (one invocation per pixel);
+//! 2. aggregation along all 4 or 8 directions in one dispatch: a path per THREADS invocations, each
+//!    invocation holding four consecutive disparities in a vec4, one barrier per pixel;
+//!    each direction writes its own volume of L, as bytes when the largest cost plus P2 fits
+//!    one (the default parameters) and as u16 otherwise;
+//! 3. selection, one workgroup per row: the sums of the volumes, the winner with the uniqueness
+//!    margin and the parabola, the right image's winners (atomic minima in workgroup memory) and
+//!    the left-right check;
+//! 4. the 3x3 median;
+//! 5. speckle removal by a parallel union-find.
+//!
+//! The buffers live across calls (reallocated when the size or the disparity layout changes);
+//! the stages are timed by GPU timestamps where the adapter has them. The kernels compute the
+//! same integers as [`crate::sgm::sgm`]; the parity test runs both on Mesa's lavapipe in CI.
+
+use std::collections::HashMap;
 
 use crate::reference::{DIRS, DIRS4};
-use crate::sgm::{check_pair, remove_speckles_with, SgmParams, SpeckleScratch};
+use crate::sgm::{check_pair, SgmParams};
 use misslam_framework::gpu::{GpuContext, GpuError};
-use wgpu::util::DeviceExt;
 
-/// WGSL of the four kernels.
+/// WGSL of the kernels.
 pub const CENSUS_WGSL: &str = include_str!("../../../../shaders/stereo/sgm_census.wgsl");
-/// Aggregation along one direction.
+/// Aggregation along all directions.
 pub const AGGREGATE_WGSL: &str = include_str!("../../../../shaders/stereo/sgm_aggregate.wgsl");
 /// Winner-takes-all and left-right check.
 pub const SELECT_WGSL: &str = include_str!("../../../../shaders/stereo/sgm_select.wgsl");
 /// 3x3 median.
 pub const MEDIAN_WGSL: &str = include_str!("../../../../shaders/stereo/sgm_median.wgsl");
+/// Speckle removal (union-find).
+pub const SPECKLE_WGSL: &str = include_str!("../../../../shaders/stereo/sgm_speckle.wgsl");
 
 /// Marks an invalid pixel in the kernels' output.
 const INVALID: f32 = -3.0e38;
-/// The aggregation kernel's largest disparity count (its per-invocation arrays).
+/// The largest disparity count (the right winners' keys keep d in 11 bits).
 const MAX_D: u32 = 1024;
+/// The widest image (the selection keeps a row's right winners in workgroup memory).
+const MAX_W: usize = 4096;
+/// Invocations of the selection kernel per row.
+const SELECT_THREADS: u32 = 256;
 
-/// Milliseconds of one GPU pair, each stage waited for (the stages' sum is a little above an
-/// unsynchronised run).
+/// Milliseconds of one GPU pair.
 #[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
 pub struct SgmGpuTiming {
-    /// Buffers created and the images uploaded.
+    /// Images and parameters packed and queued for upload (host time; the first call's
+    /// compilation and allocation are only in `total_ms`).
     pub upload_ms: f64,
     /// Census of both images.
     pub census_ms: f64,
@@ -38,37 +55,314 @@ pub struct SgmGpuTiming {
     pub select_ms: f64,
     /// The 3x3 median.
     pub median_ms: f64,
-    /// Disparities copied back to the host.
-    pub readback_ms: f64,
-    /// Speckle removal on the CPU.
+    /// Speckle removal.
     pub speckle_ms: f64,
-    /// Everything, from the gray images to the disparity map.
+    /// After the kernels: the copy to the host, the mapping, the conversion to NaN (with GPU
+    /// timestamps: the wall time from submission to the host's copy less the kernels' times).
+    pub readback_ms: f64,
+    /// Everything, from the gray images to the disparity map (wall time).
     pub total_ms: f64,
+    /// True when the kernels' times come from GPU timestamps, false when each stage was
+    /// submitted and waited for on its own ([`SgmGpu::set_staged`]), which adds each
+    /// submission's latency.
+    pub gpu_timestamps: bool,
 }
 
-/// The compiled SGM kernels.
+/// How the aggregation kernel is specialised for a disparity count and cost bound.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+struct Layout {
+    /// Invocations per path (a multiple of 4), four disparities each.
+    threads: u32,
+    /// Paths per workgroup.
+    paths: u32,
+    /// Bytes per stored L (1 or 2).
+    bytes: u32,
+}
+
+impl Layout {
+    fn of(p: &SgmParams) -> Layout {
+        let threads = 4 * p.max_disparity.div_ceil(16);
+        // About 64 invocations per workgroup: few enough workgroups to be resident at once.
+        let paths = (64 / threads).max(1);
+        // L <= C + P2 on every path (see the aggregation kernel); P2 adapted to the intensity
+        // step never exceeds max(P2, P1 + 1).
+        let max_cost = (p.census_width * p.census_height - 1).max(u32::from(p.unknown_cost()));
+        let p2 = if p.p2_adaptive {
+            u32::from(p.p2).max(u32::from(p.p1) + 1)
+        } else {
+            u32::from(p.p2)
+        };
+        let bytes = if max_cost + p2 <= 255 { 1 } else { 2 };
+        Layout {
+            threads,
+            paths,
+            bytes,
+        }
+    }
+
+    /// Disparities per pixel in a volume.
+    fn dp(&self) -> u32 {
+        4 * self.threads
+    }
+}
+
+/// Replaces the value of each `const NAME: u32 = ...;` line of a kernel.
+fn specialise(src: &str, values: &[(&str, u32)]) -> String {
+    let mut out = String::with_capacity(src.len());
+    let mut found = vec![false; values.len()];
+    for line in src.lines() {
+        let mut replaced = false;
+        for (k, (name, value)) in values.iter().enumerate() {
+            if line.starts_with(&format!("const {name}: u32 = ")) {
+                out.push_str(&format!("const {name}: u32 = {value}u;"));
+                found[k] = true;
+                replaced = true;
+            }
+        }
+        if !replaced {
+            out.push_str(line);
+        }
+        out.push('\n');
+    }
+    debug_assert!(
+        found.iter().all(|&f| f),
+        "a constant to specialise is missing"
+    );
+    out
+}
+
+/// The buffers of one size and layout, with their bind groups.
+struct Frame {
+    w: usize,
+    h: usize,
+    dirs: usize,
+    layout: Layout,
+    images: wgpu::Buffer,
+    upload: wgpu::Buffer,
+    mask: wgpu::Buffer,
+    disp: wgpu::Buffer,
+    out: wgpu::Buffer,
+    staging: wgpu::Buffer,
+    census_u: wgpu::Buffer,
+    aggregate_u: wgpu::Buffer,
+    select_u: wgpu::Buffer,
+    median_u: wgpu::Buffer,
+    speckle_u: wgpu::Buffer,
+    census_bg: wgpu::BindGroup,
+    aggregate_bg: wgpu::BindGroup,
+    select_bg: wgpu::BindGroup,
+    median_bg: wgpu::BindGroup,
+    /// Speckle bind groups of the five entry points, on the median's output and on the
+    /// selection's (median off).
+    speckle_bg: [Vec<wgpu::BindGroup>; 2],
+    _keep: Vec<wgpu::Buffer>,
+}
+
+struct Timestamps {
+    set: wgpu::QuerySet,
+    resolve: wgpu::Buffer,
+    read: wgpu::Buffer,
+}
+
+/// Query slots: a begin and an end per stage.
+const STAGES: u32 = 5;
+
+/// The compiled SGM kernels and their buffers.
 pub struct SgmGpu {
     census: wgpu::ComputePipeline,
-    aggregate: wgpu::ComputePipeline,
-    select: wgpu::ComputePipeline,
     median: wgpu::ComputePipeline,
-    speckle: SpeckleScratch,
+    speckle: Vec<wgpu::ComputePipeline>,
+    specialised: HashMap<(Layout, u32), (wgpu::ComputePipeline, wgpu::ComputePipeline)>,
+    frame: Option<Frame>,
+    timestamps: Option<Timestamps>,
+    staged: bool,
+    /// The upload's bytes, reused.
+    host: Vec<u8>,
 }
 
 fn words(v: &[u32]) -> &[u8] {
     bytemuck::cast_slice(v)
 }
 
+const SPECKLE_ENTRIES: [&str; 5] = ["init", "merge", "flatten", "count", "apply"];
+
 impl SgmGpu {
-    /// Compiles the kernels.
+    /// Compiles the kernels that do not depend on the disparity count.
     pub fn new(ctx: &GpuContext) -> Self {
+        let timestamps = ctx
+            .device
+            .features()
+            .contains(wgpu::Features::TIMESTAMP_QUERY)
+            .then(|| {
+                let n = 2 * STAGES;
+                let size = u64::from(n) * 8;
+                Timestamps {
+                    set: ctx.device.create_query_set(&wgpu::QuerySetDescriptor {
+                        label: Some("sgm timestamps"),
+                        ty: wgpu::QueryType::Timestamp,
+                        count: n,
+                    }),
+                    resolve: ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                        label: Some("sgm timestamps resolve"),
+                        size,
+                        usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+                        mapped_at_creation: false,
+                    }),
+                    read: ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                        label: Some("sgm timestamps read"),
+                        size,
+                        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                        mapped_at_creation: false,
+                    }),
+                }
+            });
         SgmGpu {
             census: ctx.compute_pipeline("sgm census", CENSUS_WGSL, "main"),
-            aggregate: ctx.compute_pipeline("sgm aggregate", AGGREGATE_WGSL, "main"),
-            select: ctx.compute_pipeline("sgm select", SELECT_WGSL, "main"),
             median: ctx.compute_pipeline("sgm median", MEDIAN_WGSL, "main"),
-            speckle: SpeckleScratch::default(),
+            speckle: SPECKLE_ENTRIES
+                .iter()
+                .map(|e| ctx.compute_pipeline(&format!("sgm speckle {e}"), SPECKLE_WGSL, e))
+                .collect(),
+            specialised: HashMap::new(),
+            frame: None,
+            timestamps,
+            staged: false,
+            host: Vec::new(),
         }
+    }
+
+    /// Submits and waits for each stage on its own to time it by the wall clock (the timing's
+    /// stage fields where the adapter has no timestamps), at the cost of the overlap.
+    pub fn set_staged(&mut self, staged: bool) {
+        self.staged = staged;
+    }
+
+    fn pipelines(&mut self, ctx: &GpuContext, l: Layout, dirs: u32) {
+        self.specialised.entry((l, dirs)).or_insert_with(|| {
+            let agg = specialise(
+                AGGREGATE_WGSL,
+                &[
+                    ("THREADS", l.threads),
+                    ("PATHS", l.paths),
+                    ("BYTES", l.bytes),
+                ],
+            );
+            let sel = specialise(
+                SELECT_WGSL,
+                &[
+                    ("BYTES", l.bytes),
+                    ("DIRS", dirs),
+                    ("THREADS", SELECT_THREADS),
+                ],
+            );
+            (
+                ctx.compute_pipeline("sgm aggregate", &agg, "main"),
+                ctx.compute_pipeline("sgm select", &sel, "main"),
+            )
+        });
+    }
+
+    fn frame(&mut self, ctx: &GpuContext, w: usize, h: usize, dirs: usize, l: Layout) {
+        if self
+            .frame
+            .as_ref()
+            .is_some_and(|f| (f.w, f.h, f.dirs, f.layout) == (w, h, dirs, l))
+        {
+            return;
+        }
+        self.frame = None;
+        let dev = &ctx.device;
+        let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
+            dev.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: size.max(16),
+                usage,
+                mapped_at_creation: false,
+            })
+        };
+        use wgpu::BufferUsages as U;
+        let px = (w * h) as u64;
+        let image_words = (w * h).div_ceil(4) as u64;
+        let volume_bytes = px * u64::from(l.dp() * l.bytes);
+        let images = buffer("sgm images", 8 * image_words, U::STORAGE | U::COPY_DST);
+        let mask = buffer("sgm mask", 4 * image_words, U::STORAGE | U::COPY_DST);
+        let upload = buffer("sgm upload", 12 * image_words, U::MAP_WRITE | U::COPY_SRC);
+        let codes = buffer("sgm census", 2 * px * 8, U::STORAGE);
+        let volumes = buffer("sgm volumes", dirs as u64 * volume_bytes, U::STORAGE);
+        let disp = buffer("sgm disparity", px * 4, U::STORAGE | U::COPY_SRC);
+        let out = buffer("sgm median", px * 4, U::STORAGE | U::COPY_SRC);
+        let parent = buffer("sgm speckle parent", px * 4, U::STORAGE);
+        let size = buffer("sgm speckle size", px * 4, U::STORAGE);
+        let staging = buffer("sgm readback", px * 4, U::MAP_READ | U::COPY_DST);
+        let uniform = |label: &str, bytes: u64| buffer(label, bytes, U::UNIFORM | U::COPY_DST);
+        let census_u = uniform("sgm census params", 32);
+        let aggregate_u = uniform("sgm aggregate params", 48 + 8 * 16);
+        let select_u = uniform("sgm select params", 48);
+        let median_u = uniform("sgm median params", 16);
+        let speckle_u = uniform("sgm speckle params", 16);
+        let bind = |label: &str, pipeline: &wgpu::ComputePipeline, bufs: &[&wgpu::Buffer]| {
+            ctx.bind_buffers(pipeline, label, bufs)
+        };
+        let (agg, sel) = &self.specialised[&(l, dirs as u32)];
+        let census_bg = bind("sgm census", &self.census, &[&census_u, &images, &codes]);
+        let aggregate_bg = bind(
+            "sgm aggregate",
+            agg,
+            &[&aggregate_u, &images, &codes, &volumes],
+        );
+        let select_bg = bind("sgm select", sel, &[&select_u, &volumes, &mask, &disp]);
+        let median_bg = bind("sgm median", &self.median, &[&median_u, &disp, &out]);
+        // Each entry point's automatic layout holds only the bindings it uses.
+        let speckle_bg = [&out, &disp].map(|target| {
+            self.speckle
+                .iter()
+                .zip(SPECKLE_ENTRIES)
+                .map(|(pl, e)| {
+                    let all = [&speckle_u, target, &parent, &size];
+                    let used: &[u32] = match e {
+                        "init" => &[0, 2, 3],
+                        "merge" => &[0, 1, 2],
+                        "flatten" => &[0, 2],
+                        _ => &[0, 1, 2, 3],
+                    };
+                    let entries: Vec<wgpu::BindGroupEntry> = used
+                        .iter()
+                        .map(|&b| wgpu::BindGroupEntry {
+                            binding: b,
+                            resource: all[b as usize].as_entire_binding(),
+                        })
+                        .collect();
+                    dev.create_bind_group(&wgpu::BindGroupDescriptor {
+                        label: Some("sgm speckle"),
+                        layout: &pl.get_bind_group_layout(0),
+                        entries: &entries,
+                    })
+                })
+                .collect()
+        });
+        self.frame = Some(Frame {
+            w,
+            h,
+            dirs,
+            layout: l,
+            images,
+            upload,
+            mask,
+            disp,
+            out,
+            staging,
+            census_u,
+            aggregate_u,
+            select_u,
+            median_u,
+            speckle_u,
+            census_bg,
+            aggregate_bg,
+            select_bg,
+            median_bg,
+            speckle_bg,
+            _keep: vec![codes, volumes, parent, size],
+        });
     }
 
     /// Disparity of the left image (px, NaN invalid): the contract of [`crate::sgm::sgm`].
@@ -87,82 +381,95 @@ impl SgmGpu {
         check_pair(left, right, w, h, valid, p)?;
         if p.max_disparity > MAX_D {
             return Err(format!(
-                "`max_disparity` {} exceeds the GPU kernel's {MAX_D}",
+                "`max_disparity` {} exceeds the GPU kernels' {MAX_D}",
                 p.max_disparity
             ));
         }
-        let nd = p.max_disparity as usize;
-        let sums_size = (w * h * nd * 4) as u64;
-        let limit = ctx.device.limits().max_storage_buffer_binding_size;
-        if sums_size > limit {
+        if w > MAX_W {
             return Err(format!(
-                "the cost sums of {w}x{h}x{nd} ({sums_size} bytes) exceed the GPU's storage buffer limit of {limit} bytes: use device = \"cpu\" or fewer disparities"
+                "the GPU kernels take images up to {MAX_W} px wide, not {w}: use device = \"cpu\""
             ));
         }
-        let gpu = |e: GpuError| e.to_string();
-        let mut timing = SgmGpuTiming::default();
-        let mut lap = std::time::Instant::now();
-        let mut stage = |ctx: &GpuContext, slot: &mut f64| -> Result<(), String> {
-            ctx.wait().map_err(gpu)?;
-            *slot = lap.elapsed().as_secs_f64() * 1e3;
-            lap = std::time::Instant::now();
-            Ok(())
-        };
-        let dev = &ctx.device;
-        let init = |label: &str, bytes: &[u8], usage: wgpu::BufferUsages| {
-            dev.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents: bytes,
-                usage,
-            })
-        };
-        let empty = |label: &str, size: u64, usage: wgpu::BufferUsages| {
-            dev.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size,
-                usage,
-                mapped_at_creation: false,
-            })
-        };
-        let storage = wgpu::BufferUsages::STORAGE;
-        let uniform = wgpu::BufferUsages::UNIFORM;
-        let images: Vec<u32> = left.iter().chain(right).map(|&v| u32::from(v)).collect();
-        let images = init("sgm images", words(&images), storage);
-        let mask: Vec<u32> = match valid {
-            Some(m) => m.iter().map(|&v| u32::from(v != 0)).collect(),
-            None => vec![1; w * h],
-        };
-        let mask = init("sgm mask", words(&mask), storage);
-        let codes = empty("sgm census", (2 * w * h * 8) as u64, storage);
-        // wgpu zero-initialises new buffers: the directions add into zeros.
-        let sums = empty("sgm sums", sums_size, storage);
-        let disp = empty(
-            "sgm disparity",
-            (w * h * 4) as u64,
-            storage | wgpu::BufferUsages::COPY_SRC,
-        );
-        let out = empty(
-            "sgm median",
-            (w * h * 4) as u64,
-            storage | wgpu::BufferUsages::COPY_SRC,
-        );
-        let (wu, hu) = (w as u32, h as u32);
-        let census_params = init(
-            "sgm census params",
-            words(&[wu, hu, p.census_width / 2, p.census_height / 2]),
-            uniform,
-        );
-        let tiles = (wu.div_ceil(8), hu.div_ceil(8));
-        stage(ctx, &mut timing.upload_ms)?;
-        ctx.dispatch(
-            &self.census,
-            "sgm census",
-            &[&census_params, &images, &codes],
-            (tiles.0, tiles.1, 2),
-        );
-        stage(ctx, &mut timing.census_ms)?;
+        let layout = Layout::of(p);
         let dirs: &[(isize, isize)] = if p.paths == 8 { &DIRS } else { &DIRS4 };
-        let max_x = dev.limits().max_compute_workgroups_per_dimension;
+        let volume_bytes = (w * h) as u64 * u64::from(layout.dp() * layout.bytes);
+        let limits = ctx.device.limits();
+        let need = volume_bytes * dirs.len() as u64;
+        if need > limits.max_storage_buffer_binding_size || need > limits.max_buffer_size {
+            return Err(format!(
+                "the path costs of {w}x{h}x{} over {} directions ({need} bytes) exceed the GPU's storage buffer limit of {} bytes: use device = \"cpu\" or fewer disparities",
+                p.max_disparity,
+                dirs.len(),
+                limits.max_storage_buffer_binding_size
+            ));
+        }
+        self.pipelines(ctx, layout, dirs.len() as u32);
+        self.frame(ctx, w, h, dirs.len(), layout);
+        let (agg, sel) = &self.specialised[&(layout, dirs.len() as u32)];
+        let f = self.frame.as_ref().ok_or("no GPU buffers")?;
+        let gpu = |e: GpuError| e.to_string();
+        let q = &ctx.queue;
+        let t_upload = std::time::Instant::now();
+        let (wu, hu) = (w as u32, h as u32);
+        let image_words = (w * h).div_ceil(4);
+        // The images (and the mask) go through a mapped upload buffer: left, right and mask,
+        // each padded to whole words (the kernels read four gray levels per word).
+        let plane = 4 * image_words;
+        {
+            let slice = f.upload.slice(..);
+            let (tx, rx) = std::sync::mpsc::channel();
+            slice.map_async(wgpu::MapMode::Write, move |r| {
+                let _ = tx.send(r);
+            });
+            ctx.wait().map_err(gpu)?;
+            rx.recv()
+                .map_err(|e| e.to_string())?
+                .map_err(|e| e.to_string())?;
+            let host = &mut self.host;
+            host.clear();
+            host.resize(3 * plane, 0);
+            host[..w * h].copy_from_slice(left);
+            host[plane..plane + w * h].copy_from_slice(right);
+            if let Some(mask) = valid {
+                for (o, &v) in host[2 * plane..2 * plane + w * h].iter_mut().zip(mask) {
+                    *o = u8::from(v != 0);
+                }
+            }
+            let mut m = slice.get_mapped_range_mut().map_err(|e| e.to_string())?;
+            m.copy_from_slice(host);
+        }
+        f.upload.unmap();
+        let right_words = image_words as u32;
+        q.write_buffer(
+            &f.census_u,
+            0,
+            words(&[
+                wu,
+                hu,
+                p.census_width / 2,
+                p.census_height / 2,
+                right_words,
+                0,
+                0,
+                0,
+            ]),
+        );
+        let max_x = ctx.device.limits().max_compute_workgroups_per_dimension;
+        let mut agg_params = vec![
+            wu,
+            hu,
+            p.max_disparity,
+            p.min_disparity as u32,
+            u32::from(p.p1),
+            u32::from(p.p2),
+            u32::from(p.p2_adaptive),
+            u32::from(p.unknown_cost()),
+            dirs.len() as u32,
+            0, // groups_x, below
+            (volume_bytes / 4) as u32,
+            right_words,
+        ];
+        let mut total_groups = 0u32;
         for &(dx, dy) in dirs {
             let paths = if dy == 0 {
                 hu
@@ -171,85 +478,183 @@ impl SgmGpu {
             } else {
                 wu + hu - 1
             };
-            let gx = paths.min(max_x);
-            let params = [
+            agg_params.extend([dx as u32, dy as u32, paths, total_groups]);
+            total_groups += paths.div_ceil(layout.paths);
+        }
+        agg_params.resize(12 + 8 * 4, 0);
+        let groups_x = total_groups.min(max_x);
+        agg_params[9] = groups_x;
+        q.write_buffer(&f.aggregate_u, 0, words(&agg_params));
+        q.write_buffer(
+            &f.select_u,
+            0,
+            words(&[
                 wu,
                 hu,
                 p.max_disparity,
                 p.min_disparity as u32,
-                u32::from(p.p1),
-                u32::from(p.p2),
-                u32::from(p.p2_adaptive),
-                u32::from(p.unknown_cost()),
-                dx as u32,
-                dy as u32,
-                paths,
-                gx,
-            ];
-            let params = init("sgm aggregate params", words(&params), uniform);
-            ctx.dispatch(
-                &self.aggregate,
-                "sgm aggregate",
-                &[&params, &images, &codes, &sums],
-                (gx, paths.div_ceil(gx), 1),
-            );
-        }
-        stage(ctx, &mut timing.aggregate_ms)?;
-        let select_params = [
-            wu,
-            hu,
-            p.max_disparity,
-            p.min_disparity as u32,
-            p.uniqueness_pct,
-            u32::from(p.subpixel),
-            u32::from(p.lr_check),
-            p.lr_max_diff.to_bits(),
-        ];
-        let select_params = init("sgm select params", words(&select_params), uniform);
-        ctx.dispatch(
-            &self.select,
-            "sgm select",
-            &[&select_params, &sums, &mask, &disp],
-            (tiles.0, tiles.1, 1),
+                p.uniqueness_pct,
+                u32::from(p.subpixel),
+                u32::from(p.lr_check),
+                p.lr_max_diff.to_bits(),
+                dirs.len() as u32,
+                layout.dp(),
+                (volume_bytes / 4) as u32,
+                u32::from(valid.is_some()),
+            ]),
         );
-        stage(ctx, &mut timing.select_ms)?;
-        let result = if p.median {
-            let median_params = init("sgm median params", words(&[wu, hu, 0, 0]), uniform);
-            ctx.dispatch(
-                &self.median,
-                "sgm median",
-                &[&median_params, &disp, &out],
-                (tiles.0, tiles.1, 1),
-            );
-            &out
-        } else {
-            &disp
+        q.write_buffer(&f.median_u, 0, words(&[wu, hu, 0, 0]));
+        q.write_buffer(
+            &f.speckle_u,
+            0,
+            words(&[wu, hu, p.speckle_window, p.speckle_range.to_bits()]),
+        );
+        let mut timing = SgmGpuTiming {
+            upload_ms: t_upload.elapsed().as_secs_f64() * 1e3,
+            ..Default::default()
         };
-        stage(ctx, &mut timing.median_ms)?;
-        let bytes = ctx.read_back(result, (w * h * 4) as u64).map_err(gpu)?;
-        let mut d: Vec<f32> = bytes
-            .chunks_exact(4)
-            .map(|b| {
-                let v = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
-                if v <= INVALID {
-                    f32::NAN
-                } else {
-                    v
+
+        let tiles8 = (wu.div_ceil(8), hu.div_ceil(8));
+        let tiles16 = (wu.div_ceil(16), hu.div_ceil(16));
+        let speckle_bg = &f.speckle_bg[usize::from(!p.median)];
+        // (pipeline, bind group, workgroups) of each stage; empty stages are skipped.
+        type Job<'a> = (
+            &'a wgpu::ComputePipeline,
+            &'a wgpu::BindGroup,
+            (u32, u32, u32),
+        );
+        let mut stages: Vec<Vec<Job>> = vec![
+            vec![(&self.census, &f.census_bg, (tiles8.0, tiles8.1, 2))],
+            vec![(
+                agg,
+                &f.aggregate_bg,
+                (groups_x, total_groups.div_ceil(groups_x), 1),
+            )],
+            vec![(sel, &f.select_bg, (hu, 1, 1))],
+            Vec::new(),
+            Vec::new(),
+        ];
+        if p.median {
+            stages[3].push((&self.median, &f.median_bg, (tiles8.0, tiles8.1, 1)));
+        }
+        if p.speckle_window > 0 {
+            for (pl, bg) in self.speckle.iter().zip(speckle_bg) {
+                stages[4].push((pl, bg, (tiles16.0, tiles16.1, 1)));
+            }
+        }
+        let result = if p.median { &f.out } else { &f.disp };
+        let bytes = (w * h * 4) as u64;
+        let ts = if self.staged {
+            None
+        } else {
+            self.timestamps.as_ref()
+        };
+        let mut stage_ms = [0.0f64; STAGES as usize];
+        let mut enc = ctx.device.create_command_encoder(&Default::default());
+        enc.copy_buffer_to_buffer(&f.upload, 0, &f.images, 0, 2 * plane as u64);
+        if valid.is_some() {
+            enc.copy_buffer_to_buffer(&f.upload, 2 * plane as u64, &f.mask, 0, plane as u64);
+        }
+        for (k, jobs) in stages.iter().enumerate() {
+            if jobs.is_empty() {
+                continue;
+            }
+            let lap = std::time::Instant::now();
+            {
+                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("sgm"),
+                    timestamp_writes: ts.map(|t| wgpu::ComputePassTimestampWrites {
+                        query_set: &t.set,
+                        beginning_of_pass_write_index: Some(2 * k as u32),
+                        end_of_pass_write_index: Some(2 * k as u32 + 1),
+                    }),
+                });
+                for (pl, bg, (x, y, z)) in jobs {
+                    pass.set_pipeline(pl);
+                    pass.set_bind_group(0, *bg, &[]);
+                    pass.dispatch_workgroups(*x, *y, *z);
                 }
+            }
+            if self.staged {
+                q.submit(Some(enc.finish()));
+                ctx.wait().map_err(gpu)?;
+                stage_ms[k] = lap.elapsed().as_secs_f64() * 1e3;
+                enc = ctx.device.create_command_encoder(&Default::default());
+            }
+        }
+        enc.copy_buffer_to_buffer(result, 0, &f.staging, 0, bytes);
+        if let Some(t) = ts {
+            enc.resolve_query_set(&t.set, 0..2 * STAGES, &t.resolve, 0);
+            enc.copy_buffer_to_buffer(&t.resolve, 0, &t.read, 0, u64::from(2 * STAGES) * 8);
+        }
+        let t_submit = std::time::Instant::now();
+        q.submit(Some(enc.finish()));
+        // Both mappings are requested, then one wait.
+        let mut buffers = vec![&f.staging];
+        buffers.extend(ts.map(|t| &t.read));
+        let mapped: Vec<_> = buffers
+            .iter()
+            .map(|buf| {
+                let (tx, rx) = std::sync::mpsc::channel();
+                buf.slice(..).map_async(wgpu::MapMode::Read, move |r| {
+                    let _ = tx.send(r);
+                });
+                rx
             })
             .collect();
-        stage(ctx, &mut timing.readback_ms)?;
-        if p.speckle_window > 0 {
-            remove_speckles_with(
-                &mut d,
-                w,
-                h,
-                p.speckle_window as usize,
-                p.speckle_range,
-                &mut self.speckle,
-            );
+        ctx.wait().map_err(gpu)?;
+        let mut d = Vec::new();
+        let mut stamps = Vec::new();
+        for (k, (buf, rx)) in buffers.iter().zip(mapped).enumerate() {
+            rx.recv()
+                .map_err(|e| e.to_string())?
+                .map_err(|e| e.to_string())?;
+            {
+                let view = buf
+                    .slice(..)
+                    .get_mapped_range()
+                    .map_err(|e| e.to_string())?;
+                if k == 0 {
+                    d = view[..bytes as usize]
+                        .chunks_exact(4)
+                        .map(|b| {
+                            let v = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+                            if v <= INVALID {
+                                f32::NAN
+                            } else {
+                                v
+                            }
+                        })
+                        .collect();
+                } else {
+                    stamps = view
+                        .chunks_exact(8)
+                        .map(|b| u64::from_le_bytes(b.try_into().unwrap_or_default()))
+                        .collect();
+                }
+            }
+            buf.unmap();
         }
-        timing.speckle_ms = lap.elapsed().as_secs_f64() * 1e3;
+        let after_submit = t_submit.elapsed().as_secs_f64() * 1e3;
+        let mut kernels = 0.0;
+        if ts.is_some() {
+            let period = f64::from(q.get_timestamp_period()) * 1e-6;
+            for (k, ms) in stage_ms.iter_mut().enumerate() {
+                if !stages[k].is_empty() {
+                    *ms = stamps[2 * k + 1].saturating_sub(stamps[2 * k]) as f64 * period;
+                    kernels += *ms;
+                }
+            }
+            timing.gpu_timestamps = true;
+        }
+        [
+            timing.census_ms,
+            timing.aggregate_ms,
+            timing.select_ms,
+            timing.median_ms,
+            timing.speckle_ms,
+        ] = stage_ms;
+        timing.readback_ms = (after_submit - kernels).max(0.0);
         timing.total_ms = t_all.elapsed().as_secs_f64() * 1e3;
         Ok((d, timing))
     }

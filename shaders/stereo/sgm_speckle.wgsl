@@ -1,0 +1,132 @@
+// SGM step 5: speckle removal, as connected-component labelling by a lock-free union-find
+// (Playne and Hawick, "A new algorithm for parallel connected-component labelling on GPUs",
+// IEEE TPDS 2018). Two valid 4-neighbours are joined when their disparities differ by at most
+// `range`; every valid pixel of a component smaller than `window` pixels becomes invalid.
+// Five entry points, dispatched in order over 16x16 tiles:
+//   init     parent(i) = i, size(i) = 0;
+//   merge    joins each valid pixel with its right and lower neighbour (atomicMin hooks the
+//            larger root under the smaller, so parent(i) <= i and every find terminates);
+//   flatten  parent(i) = root of i;
+//   count    size(root) += 1 per valid pixel;
+//   apply    invalidates the pixels of small components.
+// CPU reference: misslam_depth_sgm::sgm::remove_speckles (a flood fill); the components are
+// the same partition, so the output is the same.
+
+struct Params {
+    width: u32,
+    height: u32,
+    window: u32,
+    range: f32,
+}
+
+const INVALID: f32 = -3.0e38;
+
+@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(1) var<storage, read_write> disparity: array<f32>;
+@group(0) @binding(2) var<storage, read_write> parent: array<atomic<u32>>;
+@group(0) @binding(3) var<storage, read_write> size: array<atomic<u32>>;
+
+fn find(start: u32) -> u32 {
+    var x = start;
+    loop {
+        let p = atomicLoad(&parent[x]);
+        if (p == x) {
+            return x;
+        }
+        x = p;
+    }
+    return x;
+}
+
+fn unite(a0: u32, b0: u32) {
+    var a = a0;
+    var b = b0;
+    loop {
+        a = find(a);
+        b = find(b);
+        if (a == b) {
+            return;
+        }
+        if (a < b) {
+            let old = atomicMin(&parent[b], a);
+            if (old == b) {
+                return;
+            }
+            b = old;
+        } else {
+            let old = atomicMin(&parent[a], b);
+            if (old == a) {
+                return;
+            }
+            a = old;
+        }
+    }
+}
+
+fn joined(a: f32, b: f32) -> bool {
+    return a != INVALID && b != INVALID && abs(b - a) <= params.range;
+}
+
+fn pixel(gid: vec3<u32>) -> u32 {
+    if (gid.x >= params.width || gid.y >= params.height) {
+        return 0xffffffffu;
+    }
+    return gid.y * params.width + gid.x;
+}
+
+@compute @workgroup_size(16, 16, 1)
+fn init(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = pixel(gid);
+    if (i == 0xffffffffu) {
+        return;
+    }
+    atomicStore(&parent[i], i);
+    atomicStore(&size[i], 0u);
+}
+
+@compute @workgroup_size(16, 16, 1)
+fn merge(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = pixel(gid);
+    if (i == 0xffffffffu) {
+        return;
+    }
+    let v = disparity[i];
+    if (v == INVALID) {
+        return;
+    }
+    if (gid.x + 1u < params.width && joined(v, disparity[i + 1u])) {
+        unite(i, i + 1u);
+    }
+    if (gid.y + 1u < params.height && joined(v, disparity[i + params.width])) {
+        unite(i, i + params.width);
+    }
+}
+
+@compute @workgroup_size(16, 16, 1)
+fn flatten(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = pixel(gid);
+    if (i == 0xffffffffu) {
+        return;
+    }
+    atomicStore(&parent[i], find(i));
+}
+
+@compute @workgroup_size(16, 16, 1)
+fn count(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = pixel(gid);
+    if (i == 0xffffffffu || disparity[i] == INVALID) {
+        return;
+    }
+    atomicAdd(&size[atomicLoad(&parent[i])], 1u);
+}
+
+@compute @workgroup_size(16, 16, 1)
+fn apply(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = pixel(gid);
+    if (i == 0xffffffffu || disparity[i] == INVALID) {
+        return;
+    }
+    if (atomicLoad(&size[atomicLoad(&parent[i])]) < params.window) {
+        disparity[i] = INVALID;
+    }
+}
