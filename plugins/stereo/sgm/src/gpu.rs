@@ -107,7 +107,7 @@ impl Layout {
 }
 
 /// Replaces the value of each `const NAME: u32 = ...;` line of a kernel.
-fn specialise(src: &str, values: &[(&str, u32)]) -> String {
+fn specialise(src: &str, values: &[(&str, u32)]) -> Result<String, String> {
     let mut out = String::with_capacity(src.len());
     let mut found = vec![false; values.len()];
     for line in src.lines() {
@@ -124,11 +124,12 @@ fn specialise(src: &str, values: &[(&str, u32)]) -> String {
         }
         out.push('\n');
     }
-    debug_assert!(
-        found.iter().all(|&f| f),
-        "a constant to specialise is missing"
-    );
-    out
+    match values.iter().zip(&found).find(|(_, &f)| !f) {
+        Some(((name, _), _)) => Err(format!(
+            "the SGM kernel has no line `const {name}: u32 = ...;` to specialise"
+        )),
+        None => Ok(out),
+    }
 }
 
 /// The buffers of one size and layout, with their bind groups.
@@ -237,29 +238,32 @@ impl SgmGpu {
         self.staged = staged;
     }
 
-    fn pipelines(&mut self, ctx: &GpuContext, l: Layout, dirs: u32) {
-        self.specialised.entry((l, dirs)).or_insert_with(|| {
-            let agg = specialise(
-                AGGREGATE_WGSL,
-                &[
-                    ("THREADS", l.threads),
-                    ("PATHS", l.paths),
-                    ("BYTES", l.bytes),
-                ],
-            );
-            let sel = specialise(
-                SELECT_WGSL,
-                &[
-                    ("BYTES", l.bytes),
-                    ("DIRS", dirs),
-                    ("THREADS", SELECT_THREADS),
-                ],
-            );
-            (
-                ctx.compute_pipeline("sgm aggregate", &agg, "main"),
-                ctx.compute_pipeline("sgm select", &sel, "main"),
-            )
-        });
+    fn pipelines(&mut self, ctx: &GpuContext, l: Layout, dirs: u32) -> Result<(), String> {
+        if self.specialised.contains_key(&(l, dirs)) {
+            return Ok(());
+        }
+        let agg = specialise(
+            AGGREGATE_WGSL,
+            &[
+                ("THREADS", l.threads),
+                ("PATHS", l.paths),
+                ("BYTES", l.bytes),
+            ],
+        )?;
+        let sel = specialise(
+            SELECT_WGSL,
+            &[
+                ("BYTES", l.bytes),
+                ("DIRS", dirs),
+                ("THREADS", SELECT_THREADS),
+            ],
+        )?;
+        let pipelines = (
+            ctx.compute_pipeline("sgm aggregate", &agg, "main"),
+            ctx.compute_pipeline("sgm select", &sel, "main"),
+        );
+        self.specialised.insert((l, dirs), pipelines);
+        Ok(())
     }
 
     fn frame(&mut self, ctx: &GpuContext, w: usize, h: usize, dirs: usize, l: Layout) {
@@ -385,6 +389,12 @@ impl SgmGpu {
                 p.max_disparity
             ));
         }
+        let max_groups = ctx.device.limits().max_compute_workgroups_per_dimension as usize;
+        if h > max_groups {
+            return Err(format!(
+                "the GPU kernels take images up to {max_groups} px high (one workgroup per row), not {h}: use device = \"cpu\""
+            ));
+        }
         if w > MAX_W {
             return Err(format!(
                 "the GPU kernels take images up to {MAX_W} px wide, not {w}: use device = \"cpu\""
@@ -403,7 +413,7 @@ impl SgmGpu {
                 limits.max_storage_buffer_binding_size
             ));
         }
-        self.pipelines(ctx, layout, dirs.len() as u32);
+        self.pipelines(ctx, layout, dirs.len() as u32)?;
         self.frame(ctx, w, h, dirs.len(), layout);
         let (agg, sel) = &self.specialised[&(layout, dirs.len() as u32)];
         let f = self.frame.as_ref().ok_or("no GPU buffers")?;
@@ -657,5 +667,39 @@ impl SgmGpu {
         timing.readback_ms = (after_submit - kernels).max(0.0);
         timing.total_ms = t_all.elapsed().as_secs_f64() * 1e3;
         Ok((d, timing))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn specialise_replaces_every_constant_and_names_a_missing_one() {
+        let src = specialise(
+            AGGREGATE_WGSL,
+            &[("THREADS", 36), ("PATHS", 1), ("BYTES", 2)],
+        )
+        .expect("the aggregation kernel has the constants");
+        assert!(src.contains("const THREADS: u32 = 36u;"));
+        assert!(src.contains("const BYTES: u32 = 2u;"));
+        let sel = specialise(SELECT_WGSL, &[("BYTES", 1), ("DIRS", 4), ("THREADS", 64)]).unwrap();
+        assert!(sel.contains("const DIRS: u32 = 4u;"));
+        let err = specialise(SELECT_WGSL, &[("PER", 4)]).unwrap_err();
+        assert!(err.contains("PER"), "{err}");
+    }
+
+    #[test]
+    fn byte_costs_only_when_cost_plus_p2_fits_a_byte() {
+        let p = SgmParams::default();
+        let l = Layout::of(&p);
+        assert_eq!((l.threads, l.paths, l.bytes, l.dp()), (16, 4, 1, 64));
+        let q = SgmParams {
+            p2: 255 - 62 + 1,
+            max_disparity: 150,
+            ..p
+        };
+        let l = Layout::of(&q);
+        assert_eq!((l.threads, l.paths, l.bytes), (40, 1, 2));
     }
 }
