@@ -7,8 +7,10 @@
 // index loops are the clearer form there.
 #![allow(clippy::needless_range_loop)]
 
+mod assemble;
 pub mod decoupled;
 pub mod engine;
+mod evaluate;
 pub mod field;
 pub mod graph;
 pub mod knn;

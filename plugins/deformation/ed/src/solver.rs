@@ -10,11 +10,12 @@
 //! assembled without forming J. The pose update is right-multiplied, world_from_camera <-
 //! world_from_camera * exp(xi), xi = (rho, omega), so d p_cam / d xi = [-I, [p]x].
 
+use crate::assemble::DataAssembly;
+use crate::evaluate::Pass;
 use crate::graph::{apply_node, Binding, EdGraph};
 use crate::problem::{Method, Problem, SolverParams};
 use crate::system::{BlockSystem, PatternKey};
 use misslam_framework::nalgebra::{Isometry3, Matrix3, Translation3, UnitQuaternion, Vector3};
-use rayon::prelude::*;
 use std::time::Instant;
 
 /// What one solve did.
@@ -79,23 +80,18 @@ impl SolveSet {
     }
 }
 
-/// A projective association: model point i meets scan point `q` with normal `n` (camera frame).
-#[derive(Clone, Copy, Debug)]
-struct Assoc {
-    i: u32,
-    q: Vector3<f64>,
-    n: Vector3<f64>,
-}
-
 /// Reusable solver state (the factorisation workspace; its symbolic part survives across calls
 /// while the pattern is unchanged).
 #[derive(Default)]
 pub struct Solver {
     system: BlockSystem,
-    assoc: Vec<Assoc>,
+    /// The pass at the current state (warped points, association, data cost) ...
+    cur: Pass,
+    /// ... and at a candidate step's state.
+    next: Pass,
+    data: DataAssembly,
     dx: Vec<f64>,
     saved: Vec<[f64; 12]>,
-    normal_matrices: Vec<Matrix3<f64>>,
 }
 
 /// The pose retraction the solver uses: world_from_camera * exp(xi), xi = (rho, omega).
@@ -149,63 +145,9 @@ impl Solver {
         self.system.symbolic_builds
     }
 
-    /// Projective association at the current state (parallel over model points).
-    fn associate(
-        &mut self,
-        graph: &EdGraph,
-        problem: &Problem,
-        pose: &Isometry3<f64>,
-        params: &SolverParams,
-    ) {
-        self.assoc.clear();
-        let Some(scan) = problem.scan else { return };
-        let model = &problem.model;
-        let cam_from_world = pose.inverse();
-        let rot_cw = cam_from_world.rotation.to_rotation_matrix();
-        graph.normal_matrices_into(&mut self.normal_matrices);
-        let nm = &self.normal_matrices;
-        let cos_max = params.max_normal_angle_deg.to_radians().cos();
-        let max_d2 = params.max_distance_mm * params.max_distance_mm;
-        let k = scan.intrinsics;
-        let (w, h) = (k.width as usize, k.height as usize);
-        self.assoc = (0..model.points.len())
-            .into_par_iter()
-            .filter_map(|i| {
-                let b = &model.bindings[i];
-                let vw = graph.warp_point(&model.points[i], b);
-                let p = cam_from_world * misslam_framework::nalgebra::Point3::from(vw);
-                if p.z.is_nan() || p.z <= 1e-6 {
-                    return None;
-                }
-                let u = (k.fx * p.x / p.z + k.cx).round();
-                let v = (k.fy * p.y / p.z + k.cy).round();
-                if !(u >= 0.0 && v >= 0.0 && (u as usize) < w && (v as usize) < h) {
-                    return None;
-                }
-                let idx = v as usize * w + u as usize;
-                let q = scan.vertices[idx];
-                let n = scan.normals[idx];
-                if !q.iter().chain(n.iter()).all(|c| c.is_finite()) {
-                    return None;
-                }
-                let q = Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64);
-                let n = Vector3::new(n[0] as f64, n[1] as f64, n[2] as f64);
-                if (p.coords - q).norm_squared() > max_d2 {
-                    return None;
-                }
-                if let Some(mn) = model.normals.get(i) {
-                    let nc = rot_cw * graph.warp_normal(mn, b, nm);
-                    if nc.dot(&n) < cos_max {
-                        return None;
-                    }
-                }
-                Some(Assoc { i: i as u32, q, n })
-            })
-            .collect();
-    }
-
-    /// Total cost of the terms of `set` at the current state, with the current association.
-    fn cost(
+    /// The terms other than the projective and field data on the model points (E_rot, E_reg,
+    /// E_corr, E_r, E_p) at the current state.
+    fn other_cost(
         &self,
         graph: &EdGraph,
         problem: &Problem,
@@ -215,8 +157,7 @@ impl Solver {
     ) -> f64 {
         let w = &params.weights;
         let mut total = 0.0;
-        let free: &[u32] = &set.free;
-        for &j in free {
+        for &j in &set.free {
             let (r, _) = rot_residuals(&graph.warp[j as usize]);
             total += w.rot * r.iter().map(|x| x * x).sum::<f64>();
         }
@@ -225,33 +166,7 @@ impl Solver {
         }
         if set.data {
             let cfw = pose.inverse();
-            let model = &problem.model;
             let c = params.robust_scale_mm;
-            total += self
-                .assoc
-                .par_iter()
-                .map(|a| {
-                    let vw = graph
-                        .warp_point(&model.points[a.i as usize], &model.bindings[a.i as usize]);
-                    let p = cfw * misslam_framework::nalgebra::Point3::from(vw);
-                    let d = p.coords - a.q;
-                    let rn = a.n.dot(&d);
-                    let r2 = rn * rn + w.point_to_point * d.norm_squared();
-                    w.data * params.robust.weight_cost(r2.sqrt(), c).1
-                })
-                .sum::<f64>();
-            if let Some(field) = problem.field {
-                total += (0..model.points.len())
-                    .into_par_iter()
-                    .filter_map(|i| {
-                        let vw = graph.warp_point(&model.points[i], &model.bindings[i]);
-                        let p = cfw * misslam_framework::nalgebra::Point3::from(vw);
-                        field
-                            .sample(&p.coords)
-                            .map(|(d, _)| w.field * params.robust.weight_cost(d.abs(), c).1)
-                    })
-                    .sum::<f64>();
-            }
             for corr in problem.correspondences {
                 let vw = graph.warp_point(&corr.point, &corr.binding);
                 let p = cfw * misslam_framework::nalgebra::Point3::from(vw);
@@ -265,6 +180,23 @@ impl Solver {
                 * (pose.translation.vector - problem.pose_prior.translation.vector).norm_squared();
         }
         total
+    }
+
+    /// Runs the pass at the current state into `cur` (new association) and returns the cost.
+    fn start(
+        &mut self,
+        graph: &EdGraph,
+        problem: &Problem,
+        pose: &Isometry3<f64>,
+        set: &SolveSet,
+        params: &SolverParams,
+    ) -> f64 {
+        if set.data {
+            self.cur.run(graph, problem, pose, params, true, None);
+        } else {
+            self.cur = Pass::default();
+        }
+        self.cur.cost_new + self.other_cost(graph, problem, pose, set, params)
     }
 
     /// Block pattern of `set`: edges between solved nodes and pairs of solved nodes that share a point.
@@ -405,7 +337,9 @@ impl Solver {
         }
     }
 
-    /// Assembles J^T W J and J^T W r of `set` at the current state.
+    /// Assembles J^T W J and J^T W r of `set` at the current state: E_rot, E_reg and the pose
+    /// priors here, the data terms by the parallel [`DataAssembly`] (or, with `reference`, point
+    /// by point through [`Self::add_point`], the serial reference it is tested against).
     fn assemble(
         &mut self,
         graph: &EdGraph,
@@ -413,6 +347,7 @@ impl Solver {
         pose: &Isometry3<f64>,
         set: &SolveSet,
         params: &SolverParams,
+        reference: bool,
     ) {
         let w = &params.weights;
         let sys = &mut self.system;
@@ -459,12 +394,16 @@ impl Solver {
                 sys.add_kron_identity(sj, sk, &u, &E4, -w.reg);
             }
         }
-        if set.data {
+        if set.data && !reference {
+            self.data
+                .assemble(sys, graph, problem, pose, set.pose, params, &self.cur);
+        }
+        if set.data && reference {
             let cfw = pose.inverse();
             let r_wc = *pose.rotation.to_rotation_matrix().matrix();
             let model = &problem.model;
             let c = params.robust_scale_mm;
-            for a in &self.assoc {
+            for a in &self.cur.assoc {
                 let i = a.i as usize;
                 let vw = graph.warp_point(&model.points[i], &model.bindings[i]);
                 let p = (cfw * misslam_framework::nalgebra::Point3::from(vw)).coords;
@@ -567,13 +506,39 @@ impl Solver {
         set: &SolveSet,
         params: &SolverParams,
     ) -> Result<DenseLinearization, String> {
+        self.linearize(graph, pose, problem, set, params, false)
+    }
+
+    /// [`Self::linearize_dense`] with the data terms assembled point by point, serially: the
+    /// reference the parallel assembly is tested against.
+    #[doc(hidden)]
+    pub fn linearize_dense_reference(
+        &mut self,
+        graph: &EdGraph,
+        pose: &Isometry3<f64>,
+        problem: &Problem,
+        set: &SolveSet,
+        params: &SolverParams,
+    ) -> Result<DenseLinearization, String> {
+        self.linearize(graph, pose, problem, set, params, true)
+    }
+
+    fn linearize(
+        &mut self,
+        graph: &EdGraph,
+        pose: &Isometry3<f64>,
+        problem: &Problem,
+        set: &SolveSet,
+        params: &SolverParams,
+        reference: bool,
+    ) -> Result<DenseLinearization, String> {
         let key = self.pattern(graph, problem, set);
         self.system.prepare(graph.len(), &key)?;
         if set.data {
-            self.associate(graph, problem, pose, params);
+            self.data.build(&self.system, problem);
         }
-        self.assemble(graph, problem, pose, set, params);
-        let cost = self.cost(graph, problem, pose, set, params);
+        let cost = self.start(graph, problem, pose, set, params);
+        self.assemble(graph, problem, pose, set, params, reference);
         Ok((
             self.system.to_dense(),
             self.system.grad.clone(),
@@ -592,12 +557,16 @@ impl Solver {
         set: &SolveSet,
         params: &SolverParams,
     ) -> f64 {
-        self.cost(graph, problem, pose, set, params)
+        let mut pass = Pass::default();
+        if set.data {
+            pass.run(graph, problem, pose, params, false, Some(&self.cur));
+        }
+        pass.cost_old + self.other_cost(graph, problem, pose, set, params)
     }
 
     /// Number of projective associations at the last association.
     pub fn associations(&self) -> usize {
-        self.assoc.len()
+        self.cur.assoc.len()
     }
 
     /// Runs the loop on `set`, updating `graph.warp` and `pose` in place.
@@ -639,10 +608,10 @@ impl Solver {
         self.system.prepare(graph.len(), &key)?;
         let ta = Instant::now();
         if set.data {
-            self.associate(graph, problem, pose, params);
+            self.data.build(&self.system, problem);
         }
+        let mut cost = self.start(graph, problem, pose, set, params);
         info.ms_associate += ta.elapsed().as_secs_f64() * 1e3;
-        let mut cost = self.cost(graph, problem, pose, set, params);
         info.cost_before = cost;
         let mut lambda = match params.method {
             Method::GaussNewton => 0.0,
@@ -652,7 +621,7 @@ impl Solver {
             info.iterations += 1;
             self.system.prepare(graph.len(), &key)?;
             let tb = Instant::now();
-            self.assemble(graph, problem, pose, set, params);
+            self.assemble(graph, problem, pose, set, params, false);
             info.ms_assemble += tb.elapsed().as_secs_f64() * 1e3;
             let pose0 = *pose;
             self.saved.clear();
@@ -677,10 +646,32 @@ impl Solver {
                         *pose = pose_update(&pose0, &self.dx[off..off + 6]);
                     }
                     step_norm = self.dx.iter().fold(0.0, |m, x| m.max(x.abs()));
-                    let new_cost = self.cost(graph, problem, pose, set, params);
+                    // The candidate state's pass: the cost with the current association decides,
+                    // the new association (and its cost) is adopted with the step.
+                    let ta = Instant::now();
+                    let other = self.other_cost(graph, problem, pose, set, params);
+                    if set.data {
+                        self.next.run(
+                            graph,
+                            problem,
+                            pose,
+                            params,
+                            problem.scan.is_some(),
+                            Some(&self.cur),
+                        );
+                    } else {
+                        self.next = Pass::default();
+                    }
+                    info.ms_associate += ta.elapsed().as_secs_f64() * 1e3;
+                    let new_cost = other + self.next.cost_old;
                     if params.method == Method::GaussNewton || new_cost <= cost {
                         accepted = true;
-                        cost = new_cost;
+                        std::mem::swap(&mut self.cur, &mut self.next);
+                        cost = if problem.scan.is_some() {
+                            other + self.cur.cost_new
+                        } else {
+                            new_cost
+                        };
                         lambda = (lambda / 3.0).max(1e-9);
                         break;
                     }
@@ -699,12 +690,6 @@ impl Solver {
             if !accepted {
                 break;
             }
-            let ta = Instant::now();
-            if set.data && problem.scan.is_some() {
-                self.associate(graph, problem, pose, params);
-                cost = self.cost(graph, problem, pose, set, params);
-            }
-            info.ms_associate += ta.elapsed().as_secs_f64() * 1e3;
             let prev = info.costs.last().copied().unwrap_or(info.cost_before);
             info.costs.push(cost);
             if step_norm < params.min_step
@@ -714,7 +699,7 @@ impl Solver {
             }
         }
         info.cost_after = cost;
-        info.data_terms = self.assoc.len()
+        info.data_terms = self.cur.assoc.len()
             + if set.data {
                 problem.correspondences.len()
             } else {

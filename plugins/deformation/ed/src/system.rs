@@ -242,6 +242,12 @@ impl BlockSystem {
         Ok(())
     }
 
+    /// The upper blocks of block column `bj`: (block index, row block), ascending rows.
+    pub fn column(&self, bj: u32) -> impl Iterator<Item = (usize, u32)> + '_ {
+        let (c0, c1) = (self.col_start[bj as usize], self.col_start[bj as usize + 1]);
+        (c0..c1).map(move |i| (i, self.rows[i]))
+    }
+
     /// Index of upper block (bi, bj), bi <= bj.
     #[inline]
     pub fn find(&self, bi: u32, bj: u32) -> usize {
