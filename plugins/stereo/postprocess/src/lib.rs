@@ -12,6 +12,7 @@ use misslam_framework::{
     Node, NodeContext, NodeError, NodeResult, NormalMap, Outputs, PortSpec, PortType, Registry,
     StereoCalib, StereoFrame, TypedPlugin, VertexMap,
 };
+use rayon::prelude::*;
 
 pub use maps::Pinhole;
 
@@ -246,7 +247,7 @@ impl Node for PostprocessNode {
             (
                 d.map
                     .data
-                    .iter()
+                    .par_iter()
                     .map(|&v| c.depth_from_disparity(v))
                     .collect(),
                 c,
@@ -261,7 +262,7 @@ impl Node for PostprocessNode {
         let c =
             clean(depth, &calib, pair.map(|p| p.as_ref()), &self.params).map_err(NodeError::msg)?;
         let n = c.depth.len().max(1) as f64;
-        let valid = c.depth.iter().filter(|v| v.is_finite()).count() as f64;
+        let valid = c.depth.par_iter().filter(|v| v.is_finite()).count() as f64;
         let mut m = Metrics::default();
         m.values
             .insert("postprocess.valid_pct".into(), 100.0 * valid / n);

@@ -23,16 +23,21 @@ pub struct Pinhole {
 /// Sets depth outside `[min_mm, max_mm]` (and non-finite or non-positive depth) to NaN; returns
 /// how many pixels it invalidated.
 pub fn limit_range(depth: &mut [f32], min_mm: f32, max_mm: f32) -> usize {
-    let mut n = 0;
-    for z in depth.iter_mut() {
-        let in_range = z.is_finite() && *z > 0.0 && *z >= min_mm && *z <= max_mm;
-        // NaN was already invalid and is not counted.
-        if !in_range && !z.is_nan() {
-            *z = f32::NAN;
-            n += 1;
-        }
-    }
-    n
+    depth
+        .par_chunks_mut(4096)
+        .map(|chunk| {
+            let mut n = 0;
+            for z in chunk {
+                let in_range = z.is_finite() && *z > 0.0 && *z >= min_mm && *z <= max_mm;
+                // NaN was already invalid and is not counted.
+                if !in_range && !z.is_nan() {
+                    *z = f32::NAN;
+                    n += 1;
+                }
+            }
+            n
+        })
+        .sum()
 }
 
 /// Specular highlights of an RGB (or gray) image: pixels whose brightest channel reaches
@@ -48,7 +53,7 @@ pub fn specular_mask(
     dilate_px: usize,
 ) -> Vec<u8> {
     let mut m: Vec<u8> = data
-        .chunks_exact(channels)
+        .par_chunks_exact(channels.max(1))
         .map(|px| {
             let hi = *px.iter().max().unwrap_or(&0);
             let lo = *px.iter().min().unwrap_or(&0);
@@ -66,22 +71,36 @@ pub fn specular_mask(
     m
 }
 
-/// Square dilation of a 0/1 mask by `r` pixels (separable max filter).
+/// Square dilation of a 0/1 mask by `r` pixels (separable max filter: a row pass, then a column
+/// pass, each a running maximum over shifted rows that vectorises; rows in parallel).
 pub fn dilate(m: &[u8], w: usize, h: usize, r: usize) -> Vec<u8> {
-    let mut tmp = vec![0u8; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            let (a, b) = (x.saturating_sub(r), (x + r).min(w - 1));
-            tmp[y * w + x] = *m[y * w + a..=y * w + b].iter().max().unwrap_or(&0);
-        }
+    if w == 0 || h == 0 || m.len() != w * h {
+        return m.to_vec();
     }
+    let mut tmp = m.to_vec();
+    tmp.par_chunks_mut(w)
+        .zip(m.par_chunks(w))
+        .for_each(|(t, row)| {
+            for s in 1..=r.min(w - 1) {
+                // t[x] = max(t[x], row[x + s]) and t[x + s] = max(t[x + s], row[x]).
+                for (o, v) in t[..w - s].iter_mut().zip(&row[s..]) {
+                    *o = (*o).max(*v);
+                }
+                for (o, v) in t[s..].iter_mut().zip(&row[..w - s]) {
+                    *o = (*o).max(*v);
+                }
+            }
+        });
     let mut out = vec![0u8; w * h];
-    for y in 0..h {
+    out.par_chunks_mut(w).enumerate().for_each(|(y, o)| {
         let (a, b) = (y.saturating_sub(r), (y + r).min(h - 1));
-        for x in 0..w {
-            out[y * w + x] = (a..=b).map(|yy| tmp[yy * w + x]).max().unwrap_or(0);
+        o.copy_from_slice(&tmp[a * w..(a + 1) * w]);
+        for yy in a + 1..=b {
+            for (x, v) in o.iter_mut().zip(&tmp[yy * w..(yy + 1) * w]) {
+                *x = (*x).max(*v);
+            }
         }
-    }
+    });
     out
 }
 
@@ -106,47 +125,184 @@ pub fn bilateral(
         .collect();
     // Range weights from a table over |d| in [0, 4 sigma) (beyond it the weight is below
     // 3.4e-4 and taken as 0): no exp per neighbour.
-    const RANGE_LUT: usize = 1024;
     let lut_scale = RANGE_LUT as f32 / (4.0 * sigma_mm);
-    let range: Vec<f32> = (0..RANGE_LUT)
-        .map(|k| {
-            let d = (k as f32 + 0.5) / lut_scale;
-            (-(d * d) / (2.0 * sigma_mm * sigma_mm)).exp()
-        })
-        .collect();
-    let side = 2 * radius + 1;
+    // Index RANGE_LUT: beyond the table, weight 0.
+    let mut range = [0.0f32; RANGE_LUT + 1];
+    for (k, r) in range.iter_mut().take(RANGE_LUT).enumerate() {
+        let d = (k as f32 + 0.5) / lut_scale;
+        *r = (-(d * d) / (2.0 * sigma_mm * sigma_mm)).exp();
+    }
+    // Invalid pixels become a far value: their range weight is 0 and 0 times it adds +0, so the
+    // loops need no branch and every valid pixel gets the same sums, in the same tap order.
+    let far = sanitize(depth);
+    let t = Taps {
+        depth: &far,
+        w,
+        h,
+        radius,
+        spatial: &spatial,
+        range: &range,
+        lut_scale,
+    };
     let mut out = vec![f32::NAN; w * h];
-    out.par_chunks_mut(w.max(1))
-        .enumerate()
-        .for_each(|(y, row)| {
-            // The window clipped to the image once per row and pixel, then plain slices: the same
-            // taps in the same order as a per-tap bounds test, without its branches.
-            let (y0, y1) = (y.saturating_sub(radius), (y + radius).min(h - 1));
+    out.par_chunks_mut(w.max(1)).enumerate().for_each_init(
+        || (vec![0.0f32; w], vec![0.0f32; w]),
+        |(num, den), (y, row)| {
+            bilateral_row(&t, y, num, den);
             for (x, o) in row.iter_mut().enumerate() {
-                let z = depth[y * w + x];
-                if !z.is_finite() {
-                    continue;
+                if depth[y * w + x].is_finite() {
+                    *o = num[x] / den[x];
                 }
-                let (x0, x1) = (x.saturating_sub(radius), (x + radius).min(w - 1));
-                let (mut num, mut den) = (0.0f32, 0.0f32);
-                for yy in y0..=y1 {
-                    let taps = &depth[yy * w + x0..=yy * w + x1];
-                    let s0 = (yy + radius - y) * side + (x0 + radius - x);
-                    for (&v, &sw) in taps.iter().zip(&spatial[s0..s0 + taps.len()]) {
-                        if !v.is_finite() {
-                            continue;
-                        }
-                        let k = ((v - z).abs() * lut_scale) as usize;
-                        let Some(&rw) = range.get(k) else { continue };
-                        let wgt = sw * rw;
-                        num += wgt * v;
-                        den += wgt;
-                    }
-                }
-                *o = num / den;
             }
-        });
+        },
+    );
     out
+}
+
+/// Entries of the bilateral filter's range-weight table (one more, 0, for beyond it).
+const RANGE_LUT: usize = 1024;
+
+/// Stand-in for invalid pixels in the bilateral filter: farther than any range weight reaches.
+const FAR: f32 = 1e30;
+
+fn sanitize(depth: &[f32]) -> Vec<f32> {
+    depth
+        .iter()
+        .map(|&v| if v.is_finite() { v } else { FAR })
+        .collect()
+}
+
+/// What a row of the bilateral filter reads.
+struct Taps<'a> {
+    depth: &'a [f32],
+    w: usize,
+    h: usize,
+    radius: usize,
+    spatial: &'a [f32],
+    range: &'a [f32; RANGE_LUT + 1],
+    lut_scale: f32,
+}
+
+/// Weighted sums of row `y`: per tap (rows, then columns, in window order) over every pixel of
+/// the row the tap falls inside the image for, so lanes are pixels and each pixel's sum runs in
+/// the per-tap definition's order.
+fn bilateral_row(t: &Taps, y: usize, num: &mut [f32], den: &mut [f32]) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2 (checked just above).
+        unsafe { bilateral_row_avx2(t, y, num, den) };
+        return;
+    }
+    bilateral_row_with(t, y, num, den, span_scalar);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn bilateral_row_avx2(t: &Taps, y: usize, num: &mut [f32], den: &mut [f32]) {
+    bilateral_row_with(t, y, num, den, |s, taps, centre, num, den| {
+        span_avx2(s, taps, centre, num, den)
+    });
+}
+
+/// One tap over a span of pixels: `num += w v`, `den += w` with w = sw * range(|v - z|).
+type Span<'a> = (f32, f32, &'a [f32; RANGE_LUT + 1]);
+
+#[inline(always)]
+fn range_index(v: f32, z: f32, lut_scale: f32) -> usize {
+    // In [0, RANGE_LUT] for finite values (no NaN reaches here: see `sanitize`).
+    let k = ((v - z).abs() * lut_scale).min(RANGE_LUT as f32) as i32;
+    (k as u32).min(RANGE_LUT as u32) as usize
+}
+
+#[inline(always)]
+fn span_scalar(
+    (sw, lut_scale, range): Span<'_>,
+    taps: &[f32],
+    centre: &[f32],
+    num: &mut [f32],
+    den: &mut [f32],
+) {
+    for (((v, z), n), d) in taps.iter().zip(centre).zip(num).zip(den) {
+        let wgt = sw * range[range_index(*v, *z, lut_scale)];
+        *n += wgt * v;
+        *d += wgt;
+    }
+}
+
+/// [`span_scalar`] eight pixels at a time (the gather reads the table); the same operations in
+/// the same order per pixel, so the same bits.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn span_avx2(s: Span<'_>, taps: &[f32], centre: &[f32], num: &mut [f32], den: &mut [f32]) {
+    use std::arch::x86_64::*;
+    let n = taps.len().min(centre.len()).min(num.len()).min(den.len());
+    let (sw, lut_scale, range) = s;
+    let lanes = n / 8 * 8;
+    let swv = _mm256_set1_ps(sw);
+    let scale = _mm256_set1_ps(lut_scale);
+    let top = _mm256_set1_ps(RANGE_LUT as f32);
+    let abs = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
+    for i in (0..lanes).step_by(8) {
+        // SAFETY: i + 8 <= n, within every slice; the gather indices are in [0, RANGE_LUT]
+        // (|v - z| * scale is finite and non-negative, clamped to RANGE_LUT before truncation).
+        unsafe {
+            let v = _mm256_loadu_ps(taps.as_ptr().add(i));
+            let z = _mm256_loadu_ps(centre.as_ptr().add(i));
+            let t = _mm256_min_ps(
+                _mm256_mul_ps(_mm256_and_ps(_mm256_sub_ps(v, z), abs), scale),
+                top,
+            );
+            let rw = _mm256_i32gather_ps::<4>(range.as_ptr(), _mm256_cvttps_epi32(t));
+            let wgt = _mm256_mul_ps(swv, rw);
+            let pn = num.as_mut_ptr().add(i);
+            let pd = den.as_mut_ptr().add(i);
+            _mm256_storeu_ps(
+                pn,
+                _mm256_add_ps(_mm256_loadu_ps(pn), _mm256_mul_ps(wgt, v)),
+            );
+            _mm256_storeu_ps(pd, _mm256_add_ps(_mm256_loadu_ps(pd), wgt));
+        }
+    }
+    span_scalar(
+        s,
+        &taps[lanes..n],
+        &centre[lanes..n],
+        &mut num[lanes..n],
+        &mut den[lanes..n],
+    );
+}
+
+/// Weighted sums of row `y`: per tap (rows, then columns, in window order) over every pixel of
+/// the row the tap falls inside the image for, so lanes are pixels and each pixel's sum runs in
+/// the per-tap definition's order.
+#[inline(always)]
+fn bilateral_row_with<F>(t: &Taps, y: usize, num: &mut [f32], den: &mut [f32], span: F)
+where
+    F: Fn(Span<'_>, &[f32], &[f32], &mut [f32], &mut [f32]),
+{
+    let (w, r) = (t.w, t.radius);
+    let side = 2 * r + 1;
+    num.fill(0.0);
+    den.fill(0.0);
+    let centre = &t.depth[y * w..(y + 1) * w];
+    for yy in y.saturating_sub(r)..=(y + r).min(t.h - 1) {
+        let src = &t.depth[yy * w..(yy + 1) * w];
+        for dxi in 0..side {
+            // Tap column offset dx = dxi - r: pixels x with 0 <= x + dx < w.
+            let sw = t.spatial[(yy + r - y) * side + dxi];
+            let (x0, x1) = (r.saturating_sub(dxi), (w + r).saturating_sub(dxi).min(w));
+            if x0 >= x1 {
+                continue;
+            }
+            span(
+                (sw, t.lut_scale, t.range),
+                &src[x0 + dxi - r..x1 + dxi - r],
+                &centre[x0..x1],
+                &mut num[x0..x1],
+                &mut den[x0..x1],
+            );
+        }
+    }
 }
 
 /// Lifts depth to camera-frame vertices `Z K^-1 [u v 1]^T` and normals. A normal is the cross
@@ -257,6 +413,31 @@ mod tests {
         assert_eq!(m.iter().map(|&v| v as usize).sum::<usize>(), 9);
         assert_eq!(m[2 * w + 3], 1);
         assert_eq!(m[w + 1], 0);
+    }
+
+    #[test]
+    fn dilation_equals_the_square_window_definition() {
+        let mut s = 99u32;
+        for (w, h, r) in [(1, 1, 2), (7, 5, 1), (19, 11, 3), (6, 9, 8), (30, 4, 0)] {
+            let m: Vec<u8> = (0..w * h)
+                .map(|_| {
+                    s = s.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                    (s >> 28 == 0) as u8
+                })
+                .collect();
+            let got = dilate(&m, w, h, r);
+            for y in 0..h {
+                for x in 0..w {
+                    let mut want = 0;
+                    for yy in y.saturating_sub(r)..=(y + r).min(h - 1) {
+                        for xx in x.saturating_sub(r)..=(x + r).min(w - 1) {
+                            want = want.max(m[yy * w + xx]);
+                        }
+                    }
+                    assert_eq!(got[y * w + x], want, "{w}x{h} r {r} at ({x}, {y})");
+                }
+            }
+        }
     }
 
     #[test]
