@@ -71,6 +71,7 @@ fn example_plugin_loads_runs_and_reports_panics() {
         seed: 0,
         gpu: &provider,
         eval: &mut eval,
+        stages: &mut Default::default(),
     };
     let frame = misslam::framework::FrameInfo {
         index: 0,

@@ -117,6 +117,7 @@ impl Node for Step {
             .unwrap()
             .push((ctx.id.to_owned(), f.index, v.map.data[0], ptr));
         out.put("value", map_of(v.map.data[0] + self.p.add))?;
+        ctx.report_stage_ms("add", 0.25 * (f.ordinal + 1) as f64);
         let mut m = Metrics::default();
         m.values.insert("value".into(), v.map.data[0] as f64);
         out.put("metrics", m)?;
@@ -246,6 +247,11 @@ fn runs_in_dependency_order_and_shares_payloads() {
         }
     }
     assert_eq!(json["params"]["right"]["add"], 10.0);
+    // A node's own stages: `<id>.<stage>`, one sample per call (0.25, 0.5, ... 1.25 ms).
+    let t = &json["timing_ms"]["left.add"];
+    assert_eq!(t["frames"], 5);
+    assert_eq!(t["median_ms"], 0.75);
+    assert_eq!(t["mean_ms"], 0.75);
 }
 
 #[test]

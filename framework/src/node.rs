@@ -119,12 +119,27 @@ pub struct NodeContext<'a> {
     pub gpu: &'a GpuProvider,
     /// Evaluation figures reported by this node (in `finish`), gathered under `eval` in `metrics.json`.
     pub eval: &'a mut BTreeMap<String, f64>,
+    /// Times of the node's own stages, ms per call, gathered under `timing_ms` in `metrics.json`
+    /// as `<node id>.<stage>`.
+    pub stages: &'a mut BTreeMap<String, Vec<f64>>,
 }
 
 impl NodeContext<'_> {
     /// Reports an evaluation figure for `metrics.json`, e.g. `("depth.mae_mm", 0.31)`.
     pub fn report_eval(&mut self, key: &str, value: f64) {
         self.eval.insert(key.to_owned(), value);
+    }
+
+    /// Reports the time of one of the node's stages in this call, e.g. `("solve", 12.5)`: its
+    /// median, mean and p95 over the run appear in `metrics.json` under
+    /// `timing_ms."<node id>.<stage>"` and in the timing table `misslam run` prints.
+    pub fn report_stage_ms(&mut self, stage: &str, ms: f64) {
+        match self.stages.get_mut(stage) {
+            Some(v) => v.push(ms),
+            None => {
+                self.stages.insert(stage.to_owned(), vec![ms]);
+            }
+        }
     }
 }
 

@@ -107,6 +107,7 @@ struct Slot {
     log: bool,
     times_ms: Vec<f64>,
     eval: BTreeMap<String, f64>,
+    stages: BTreeMap<String, Vec<f64>>,
     last: Option<Result<Flow, String>>,
 }
 
@@ -155,6 +156,7 @@ impl Runtime {
                 log: spec.log,
                 times_ms: Vec::new(),
                 eval: BTreeMap::new(),
+                stages: BTreeMap::new(),
                 last: None,
             });
         }
@@ -214,6 +216,7 @@ impl Runtime {
                 seed,
                 &self.gpu,
                 &mut slot.eval,
+                &mut slot.stages,
             );
             if let Err(message) = guarded(|| slot.node.start(&mut ctx)) {
                 error = Some(RunError::Lifecycle {
@@ -286,6 +289,7 @@ impl Runtime {
                 seed,
                 &self.gpu,
                 &mut slot.eval,
+                &mut slot.stages,
             );
             if let Err(message) = guarded(|| slot.node.finish(&mut ctx)) {
                 tracing::error!("node `{}` failed in finish: {message}", slot.id);
@@ -320,6 +324,12 @@ impl Runtime {
                 .insert(slot.id.clone(), TimingStats::from_samples(&slot.times_ms));
             for (k, v) in &slot.eval {
                 metrics.eval.insert(k.clone(), *v);
+            }
+            for (stage, samples) in &slot.stages {
+                metrics.timing_ms.insert(
+                    format!("{}.{stage}", slot.id),
+                    TimingStats::from_samples(samples),
+                );
             }
             let params = serde_json::to_value(&spec.params).unwrap_or(serde_json::Value::Null);
             metrics.params.insert(slot.id.clone(), params);
@@ -366,7 +376,15 @@ impl Runtime {
                 }
             }
             let run_one = |slot: &mut Slot| {
-                let mut ctx = node_ctx(&slot.id, out_dir, graph_dir, seed, gpu, &mut slot.eval);
+                let mut ctx = node_ctx(
+                    &slot.id,
+                    out_dir,
+                    graph_dir,
+                    seed,
+                    gpu,
+                    &mut slot.eval,
+                    &mut slot.stages,
+                );
                 let inputs = Inputs {
                     specs: &slot.in_specs,
                     values: &slot.inputs,
@@ -453,6 +471,7 @@ fn node_ctx<'a>(
     seed: u64,
     gpu: &'a GpuProvider,
     eval: &'a mut BTreeMap<String, f64>,
+    stages: &'a mut BTreeMap<String, Vec<f64>>,
 ) -> NodeContext<'a> {
     NodeContext {
         id,
@@ -461,6 +480,7 @@ fn node_ctx<'a>(
         seed,
         gpu,
         eval,
+        stages,
     }
 }
 

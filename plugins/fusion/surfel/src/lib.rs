@@ -195,6 +195,23 @@ impl Model {
     }
 }
 
+/// Stage times of one frame, ms, for `metrics.json` (`fusion.<stage>` under `timing_ms`).
+#[derive(Default)]
+struct Stages {
+    times: Vec<(&'static str, f64)>,
+    lap: Option<std::time::Instant>,
+}
+
+impl Stages {
+    /// Ends the stage running since the last lap (or the start) as `name`.
+    fn lap(&mut self, name: &'static str) {
+        let now = std::time::Instant::now();
+        if let Some(t) = self.lap.replace(now) {
+            self.times.push((name, (now - t).as_secs_f64() * 1e3));
+        }
+    }
+}
+
 /// The node.
 pub struct SurfelNode {
     p: Params,
@@ -230,7 +247,9 @@ impl SurfelNode {
         left: Option<&Image>,
         prior: Option<&Pose>,
         outputs: &mut Outputs,
+        st: &mut Stages,
     ) -> NodeResult<Flow> {
+        st.lap("");
         let (w, h) = (depth.map.width as usize, depth.map.height as usize);
         if depth.map.data.len() != w * h {
             return Err(NodeError::msg(format!(
@@ -255,6 +274,7 @@ impl SurfelNode {
             &mut self.vertices,
             &mut self.scan_normals,
         );
+        st.lap("scan");
         let mut pose = prior.map_or(Isometry3::identity(), |p| p.world_from_camera);
         let lost = prior.is_some_and(|p| p.state == TrackingState::Lost);
         let stride = self.p.stride as usize;
@@ -331,6 +351,7 @@ impl SurfelNode {
                 correspondences: &[],
                 pose_prior: pose,
             };
+            st.lap("select");
             let (info, _) = self
                 .engine
                 .solve(
@@ -342,6 +363,12 @@ impl SurfelNode {
                     &self.p.decoupled,
                 )
                 .map_err(NodeError::msg)?;
+            st.lap("solve");
+            st.times.extend([
+                ("solve.associate", info.ms_associate),
+                ("solve.assemble", info.ms_assemble),
+                ("solve.factor", info.ms_factor),
+            ]);
             metrics
                 .values
                 .insert("fusion.visible".into(), visible.len() as f64);
@@ -423,6 +450,7 @@ impl SurfelNode {
                     new_points.push((wp, wn, color, quality));
                 }
             }
+            st.lap("fuse");
             // New surfels: canonical position by inverting the warp (fixed point iteration).
             let room = self.p.max_surfels.saturating_sub(m.len());
             if new_points.len() > room {
@@ -448,6 +476,7 @@ impl SurfelNode {
                 grown.push(c);
                 added += 1;
             }
+            st.lap("add");
             // 4. Unstable surfels.
             let keep: Vec<bool> = (0..m.len())
                 .map(|s| {
@@ -473,6 +502,7 @@ impl SurfelNode {
             }
         }
 
+        st.lap("grow");
         let Some(graph) = self.graph.as_ref() else {
             return Err(NodeError::msg("no graph"));
         };
@@ -514,6 +544,7 @@ impl SurfelNode {
             },
         )?;
         outputs.put("info", metrics)?;
+        st.lap("output");
         Ok(Flow::Continue)
     }
 }
@@ -531,7 +562,7 @@ impl Node for SurfelNode {
 
     fn process(
         &mut self,
-        _: &mut NodeContext,
+        ctx: &mut NodeContext,
         frame: FrameInfo,
         inputs: &Inputs,
         outputs: &mut Outputs,
@@ -540,7 +571,20 @@ impl Node for SurfelNode {
         let pair = inputs.opt::<StereoFrame>("stereo")?;
         let prior = inputs.opt::<Pose>("pose")?;
         let left = pair.map(|p| p.left.as_ref());
-        self.frame(frame, depth, left, prior.map(|p| p.as_ref()), outputs)
+        let mut st = Stages::default();
+        let flow = self.frame(
+            frame,
+            depth,
+            left,
+            prior.map(|p| p.as_ref()),
+            outputs,
+            &mut st,
+        );
+        // The first frame and lost frames have no solve: only the stages they ran are reported.
+        for (stage, ms) in st.times {
+            ctx.report_stage_ms(stage, ms);
+        }
+        flow
     }
 }
 
