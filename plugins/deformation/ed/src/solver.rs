@@ -16,6 +16,7 @@ use crate::graph::{apply_node, Binding, EdGraph};
 use crate::problem::{Method, Problem, SolverParams};
 use crate::system::{BlockSystem, PatternKey};
 use misslam_framework::nalgebra::{Isometry3, Matrix3, Translation3, UnitQuaternion, Vector3};
+use rayon::prelude::*;
 use std::time::Instant;
 
 /// What one solve did.
@@ -229,7 +230,7 @@ impl Solver {
                 add(&c.binding);
             }
         }
-        pairs.sort_unstable();
+        pairs.par_sort_unstable();
         pairs.dedup();
         PatternKey {
             free: set.free.clone(),

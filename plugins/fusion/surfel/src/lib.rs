@@ -31,6 +31,7 @@ use misslam_framework::{
     NodeError, NodeResult, Outputs, PortSpec, PortType, Pose, Registry, StereoFrame, SurfelModel,
     TrackingState, TypedPlugin,
 };
+use rayon::prelude::*;
 
 pub use misslam_deformation_ed::engine::SolverKind;
 
@@ -462,16 +463,22 @@ impl SurfelNode {
                 );
                 new_points.truncate(room);
             }
+            let graph_ref = &*graph;
+            let placed: Vec<(Vector3<f64>, Vector3<f64>, Binding)> = new_points
+                .par_iter()
+                .map(|(wp, wn, _, _)| {
+                    let mut c = *wp;
+                    for _ in 0..3 {
+                        let b = graph_ref.bind(&c);
+                        c += wp - graph_ref.warp_point(&c, &b);
+                    }
+                    let b = graph_ref.bind(&c);
+                    let (_, a_t) = local_inverses(&b, &nm);
+                    (c, (a_t * wn).try_normalize(1e-12).unwrap_or(*wn), b)
+                })
+                .collect();
             let mut grown = Vec::with_capacity(new_points.len());
-            for (wp, wn, color, q) in new_points {
-                let mut c = wp;
-                for _ in 0..3 {
-                    let b = graph.bind(&c);
-                    c += wp - graph.warp_point(&c, &b);
-                }
-                let b = graph.bind(&c);
-                let (_, a_t) = local_inverses(&b, &nm);
-                let cn = (a_t * wn).try_normalize(1e-12).unwrap_or(wn);
+            for ((c, cn, b), (_, _, color, q)) in placed.into_iter().zip(new_points) {
                 m.push(c, cn, color, q, frame.index, b);
                 grown.push(c);
                 added += 1;
