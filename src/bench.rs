@@ -217,6 +217,12 @@ pub struct EdScalingRow {
     pub batch_solved: usize,
     /// Batch solve time, ms.
     pub batch_ms: f64,
+    /// Batch: Gauss-Newton / LM iterations run.
+    pub batch_iterations: usize,
+    /// Batch: assembly time summed over the iterations, ms.
+    pub batch_assemble_ms: f64,
+    /// Batch: numeric factorisation and triangular solves summed over the iterations, ms.
+    pub batch_factor_ms: f64,
     /// Batch: mean distance of every map point from its GT position, mm.
     pub batch_err_mm: f64,
     /// Nodes the decoupled solver solved (PR plus the PI rings).
@@ -384,55 +390,55 @@ pub fn ed_scaling(p: &EdScalingParams) -> Result<Vec<EdScalingRow>, String> {
                 .sum::<f64>()
                 / points.len() as f64
         };
-        let mut solve = |g: &mut EdGraph, decoupled: bool| -> Result<(usize, f64, usize), String> {
-            let vis = visible_points(
-                g, &points, &normals, &bindings, &pose, &k, &verts, &norms, 5.0, 60.0,
-            );
-            let lp: Vec<Vector3<f64>> = vis.iter().map(|&i| points[i as usize]).collect();
-            let ln: Vec<Vector3<f64>> = vis.iter().map(|&i| normals[i as usize]).collect();
-            let lb: Vec<Binding> = vis.iter().map(|&i| bindings[i as usize]).collect();
-            // Sparse correspondences on every 15th visible point (what feature matches give;
-            // point-to-plane alone cannot see sliding along the surface).
-            let corr: Vec<Correspondence> = vis
-                .iter()
-                .step_by(15)
-                .map(|&i| Correspondence {
-                    point: points[i as usize],
-                    binding: bindings[i as usize],
-                    target: truth[i as usize] - Vector3::new(cam_x, 0.0, 0.0),
-                })
-                .collect();
-            let problem = Problem {
-                model: ModelPoints {
-                    points: &lp,
-                    normals: &ln,
-                    bindings: &lb,
-                },
-                scan: Some(Scan {
-                    intrinsics: k,
-                    vertices: &verts,
-                    normals: &norms,
-                }),
-                field: None,
-                correspondences: &corr,
-                pose_prior: pose,
+        let mut solve =
+            |g: &mut EdGraph, decoupled: bool| -> Result<(usize, f64, usize, Info), String> {
+                let vis = visible_points(
+                    g, &points, &normals, &bindings, &pose, &k, &verts, &norms, 5.0, 60.0,
+                );
+                let lp: Vec<Vector3<f64>> = vis.iter().map(|&i| points[i as usize]).collect();
+                let ln: Vec<Vector3<f64>> = vis.iter().map(|&i| normals[i as usize]).collect();
+                let lb: Vec<Binding> = vis.iter().map(|&i| bindings[i as usize]).collect();
+                // Sparse correspondences on every 15th visible point (what feature matches give;
+                // point-to-plane alone cannot see sliding along the surface).
+                let corr: Vec<Correspondence> = vis
+                    .iter()
+                    .step_by(15)
+                    .map(|&i| Correspondence {
+                        point: points[i as usize],
+                        binding: bindings[i as usize],
+                        target: truth[i as usize] - Vector3::new(cam_x, 0.0, 0.0),
+                    })
+                    .collect();
+                let problem = Problem {
+                    model: ModelPoints {
+                        points: &lp,
+                        normals: &ln,
+                        bindings: &lb,
+                    },
+                    scan: Some(Scan {
+                        intrinsics: k,
+                        vertices: &verts,
+                        normals: &norms,
+                    }),
+                    field: None,
+                    correspondences: &corr,
+                    pose_prior: pose,
+                };
+                let mut ps = pose;
+                let t = std::time::Instant::now();
+                let (solved, info) = if decoupled {
+                    dec.solve(g, &mut ps, &problem, &params, &DecoupledParams::default())?;
+                    let i = dec.solve_info();
+                    (i.pr_nodes + i.pi_solved, i.combined())
+                } else {
+                    let set = SolveSet::all(g, false);
+                    let info = batch.solve(g, &mut ps, &problem, &set, &params)?;
+                    (info.solved_nodes, info)
+                };
+                Ok((solved, t.elapsed().as_secs_f64() * 1e3, vis.len(), info))
             };
-            let mut ps = pose;
-            let t = std::time::Instant::now();
-            let solved = if decoupled {
-                dec.solve(g, &mut ps, &problem, &params, &DecoupledParams::default())?;
-                let i = dec.solve_info();
-                i.pr_nodes + i.pi_solved
-            } else {
-                let set = SolveSet::all(g, false);
-                batch
-                    .solve(g, &mut ps, &problem, &set, &params)?
-                    .solved_nodes
-            };
-            Ok((solved, t.elapsed().as_secs_f64() * 1e3, vis.len()))
-        };
-        let (bs, bms, nvis) = solve(bg, false)?;
-        let (ds, dms, _) = solve(dg, true)?;
+        let (bs, bms, nvis, binfo) = solve(bg, false)?;
+        let (ds, dms, _, _) = solve(dg, true)?;
         rows.push(EdScalingRow {
             frame: f,
             total_nodes: bg.len(),
@@ -440,6 +446,9 @@ pub fn ed_scaling(p: &EdScalingParams) -> Result<Vec<EdScalingRow>, String> {
             visible_points: nvis,
             batch_solved: bs,
             batch_ms: bms,
+            batch_iterations: binfo.iterations,
+            batch_assemble_ms: binfo.ms_assemble,
+            batch_factor_ms: binfo.ms_factor,
             batch_err_mm: err(bg),
             decoupled_solved: ds,
             decoupled_ms: dms,

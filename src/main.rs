@@ -350,12 +350,14 @@ fn run(command: Command) -> anyhow::Result<()> {
             };
             let rows = misslam::bench::ed_scaling(&p).map_err(anyhow::Error::msg)?;
             println!(
-                "{:>5} {:>7} {:>7} {:>8} {:>9} {:>9} {:>8} {:>9} {:>9}",
+                "{:>5} {:>7} {:>7} {:>8} {:>9} {:>4} {:>9} {:>9} {:>8} {:>9} {:>9}",
                 "frame",
                 "nodes",
                 "visible",
                 "batch n",
                 "batch ms",
+                "it",
+                "ms/it",
                 "batch mm",
                 "dec n",
                 "dec ms",
@@ -363,12 +365,14 @@ fn run(command: Command) -> anyhow::Result<()> {
             );
             for r in &rows {
                 println!(
-                    "{:>5} {:>7} {:>7} {:>8} {:>9.1} {:>9.3} {:>8} {:>9.1} {:>9.3}",
+                    "{:>5} {:>7} {:>7} {:>8} {:>9.1} {:>4} {:>9.1} {:>9.3} {:>8} {:>9.1} {:>9.3}",
                     r.frame,
                     r.total_nodes,
                     r.visible_points,
                     r.batch_solved,
                     r.batch_ms,
+                    r.batch_iterations,
+                    (r.batch_assemble_ms + r.batch_factor_ms) / r.batch_iterations.max(1) as f64,
                     r.batch_err_mm,
                     r.decoupled_solved,
                     r.decoupled_ms,

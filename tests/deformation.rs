@@ -64,6 +64,11 @@ fn ed_scaling_decoupled_solves_a_bounded_set_while_the_map_grows() {
         assert_eq!(r.batch_solved, r.total_nodes);
         assert!(r.decoupled_solved < r.total_nodes / 3, "{r:?}");
         assert!(r.batch_err_mm < 0.4 && r.decoupled_err_mm < 0.4, "{r:?}");
+        assert!(r.batch_iterations >= 1, "{r:?}");
+        assert!(
+            r.batch_assemble_ms + r.batch_factor_ms <= r.batch_ms,
+            "{r:?}"
+        );
     }
     // The JSON the CLI writes carries every documented field.
     let v = serde_json::to_value(&rows[0]).unwrap();
@@ -74,6 +79,9 @@ fn ed_scaling_decoupled_solves_a_bounded_set_while_the_map_grows() {
         "visible_points",
         "batch_solved",
         "batch_ms",
+        "batch_iterations",
+        "batch_assemble_ms",
+        "batch_factor_ms",
         "batch_err_mm",
         "decoupled_solved",
         "decoupled_ms",
