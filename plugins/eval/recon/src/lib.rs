@@ -18,6 +18,7 @@ use misslam_framework::{
     BuildContext, BuildError, Flow, FrameInfo, Inputs, Mesh, Node, NodeContext, NodeError,
     NodeResult, Outputs, PointCloud, PortSpec, PortType, Pose, Registry, SurfelModel, TypedPlugin,
 };
+use rayon::prelude::*;
 
 /// Parameters of `eval.recon`.
 #[derive(Clone, Debug, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
@@ -177,6 +178,19 @@ impl<'a> SurfaceIndex<'a> {
         })
     }
 
+    /// Squared distance from `p` to the box of cell `c`.
+    #[inline]
+    fn cell_dist2(&self, p: V3, c: [usize; 3]) -> f32 {
+        let mut d2 = 0.0;
+        for k in 0..3 {
+            let lo = self.origin[k] + c[k] as f32 * self.cell;
+            let hi = lo + self.cell;
+            let e = (lo - p[k]).max(p[k] - hi).max(0.0);
+            d2 += e * e;
+        }
+        d2
+    }
+
     /// Distance from `p` to the nearest triangle, exact.
     pub fn distance(&self, p: V3) -> f32 {
         let c = [0, 1, 2].map(|k| ((p[k] - self.origin[k]) / self.cell).floor() as i64);
@@ -202,6 +216,11 @@ impl<'a> SurfaceIndex<'a> {
                         }
                         let (x, y, z) = (x as usize, y as usize, z as usize);
                         if x >= self.dims[0] || y >= self.dims[1] || z >= self.dims[2] {
+                            continue;
+                        }
+                        // A triangle lies inside the cells it is listed in, so none in a cell
+                        // farther than `best` can be closer.
+                        if self.cell_dist2(p, [x, y, z]) > best {
                             continue;
                         }
                         for &ti in &self.cells[(z * self.dims[1] + y) * self.dims[0] + x] {
@@ -258,7 +277,7 @@ pub fn score(points: &[V3], gt: &Mesh) -> Result<(ReconScores, Vec<f32>), String
         return Err("the reconstruction has no points".into());
     }
     let index = SurfaceIndex::new(gt)?;
-    let dist: Vec<f32> = points.iter().map(|&p| index.distance(p)).collect();
+    let dist: Vec<f32> = points.par_iter().map(|&p| index.distance(p)).collect();
     let n = dist.len() as f64;
     let mean = dist.iter().map(|&d| d as f64).sum::<f64>() / n;
     let rms = (dist.iter().map(|&d| (d as f64).powi(2)).sum::<f64>() / n).sqrt();
