@@ -13,6 +13,20 @@ fn run(sets: &[&str], name: &str) -> std::collections::BTreeMap<String, f64> {
     let header = String::from_utf8_lossy(&ply[..ply.len().min(400)]).to_string();
     assert!(header.contains("property uchar red"), "{header}");
     assert!(out.join("export/model/final.glb").is_file());
+    // The fusion's own stages are timed (every frame after the first solves).
+    let t = &report.metrics.timing_ms;
+    for stage in [
+        "scan",
+        "select",
+        "solve",
+        "solve.factor",
+        "fuse",
+        "add",
+        "grow",
+        "output",
+    ] {
+        assert!(t.contains_key(&format!("fusion.{stage}")), "fusion.{stage}");
+    }
     report.metrics.eval
 }
 
