@@ -47,6 +47,7 @@ fn mis_slam_reconstructs_the_beating_heart_within_the_targets() {
         assert!(mean < target, "noise {noise}: recon.mean_mm {mean}");
         assert_eq!(e["tracking.lost_pct"], 0.0);
         assert!(e["fusion.surfels"] > 1000.0);
+        assert_eq!(e["fusion.disagreeing_frames"], 0.0);
     }
 }
 
@@ -84,6 +85,35 @@ fn fusion_on_a_static_scene_merges_instead_of_duplicating() {
     eprintln!("static scene: {first} surfels after 1 frame, {n} after 6; recon {mean:.4} mm");
     assert!(n <= first * 1.02, "{first} -> {n}");
     assert!(mean < 0.05, "{mean}");
+    assert_eq!(e["fusion.disagreeing_frames"], 0.0);
+}
+
+#[test]
+fn fusion_says_when_the_depth_stops_meeting_the_model() {
+    // The scope jumps by up to 20 mm between frames but fusion is given no pose: the depth lands
+    // beyond the association distance, most samples become new surfels, and that is counted.
+    let graph = std::fs::read_to_string("graphs/mis_slam.toml")
+        .unwrap()
+        .replace(
+            r#"inputs = { depth = "post.depth", stereo = "src.stereo", pose = "track.pose" }"#,
+            r#"inputs = { depth = "src.depth_gt", stereo = "src.stereo" }"#,
+        );
+    assert!(graph.contains("src.depth_gt"));
+    let dir = common::tmp_dir("fusion_disagree");
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("jumping.toml");
+    std::fs::write(&path, graph).unwrap();
+    let sets = [
+        "graph.frames.count=3",
+        "src.sweep_mm=20",
+        "src.sweep_period_s=0.1",
+    ]
+    .map(String::from);
+    let g = misslam::framework::graph::load(&path, &misslam::builtin_registry(), &sets).unwrap();
+    let e = common::run_graph_ok(g, &dir.join("run")).metrics.eval;
+    let n = e["fusion.disagreeing_frames"];
+    eprintln!("jumping scope without a pose: {n} of 2 fused frames disagreed");
+    assert!(n >= 1.0, "{n}");
 }
 
 #[test]

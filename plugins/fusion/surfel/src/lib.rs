@@ -221,7 +221,17 @@ pub struct SurfelNode {
     graph: Option<EdGraph>,
     vertices: Vec<[f32; 3]>,
     scan_normals: Vec<[f32; 3]>,
+    /// Frames whose depth disagreed with the model (see [`DISAGREE_MIN_SAMPLES`]).
+    disagreed: u64,
+    /// Whether the previous frame disagreed (one warning per run of such frames).
+    disagreeing: bool,
 }
+
+/// A fused frame whose depth mostly did not meet the model: more samples became new surfels
+/// than fused into existing ones, out of at least this many. On a tracked scene this means the
+/// pose (or the warp) no longer puts the model where the depth is, and the model fills with
+/// duplicates; it is warned about and counted (`fusion.disagreeing_frames` in `metrics.json`).
+pub const DISAGREE_MIN_SAMPLES: usize = 100;
 
 /// The warp's local linear part at a binding, as the pair (A^-1, A^T) derived from the blended
 /// normal matrices A^-T: A^-1 maps a live displacement back to the canonical frame, A^T maps a
@@ -484,6 +494,20 @@ impl SurfelNode {
                 added += 1;
             }
             st.lap("add");
+            // A depth that mostly misses the model: said, not silently absorbed.
+            let disagrees = added > fused && added + fused >= DISAGREE_MIN_SAMPLES;
+            if disagrees {
+                self.disagreed += 1;
+                if !self.disagreeing {
+                    tracing::warn!(
+                        frame = frame.index,
+                        "the depth disagrees with the model: {fused} samples fused, {added} added \
+                         as new surfels (tracking drift or a wrong pose?); counted in \
+                         fusion.disagreeing_frames"
+                    );
+                }
+            }
+            self.disagreeing = disagrees;
             // 4. Unstable surfels.
             let keep: Vec<bool> = (0..m.len())
                 .map(|s| {
@@ -564,6 +588,7 @@ impl Node for SurfelNode {
             "fusion.nodes",
             self.graph.as_ref().map_or(0, |g| g.len()) as f64,
         );
+        ctx.report_eval("fusion.disagreeing_frames", self.disagreed as f64);
         Ok(())
     }
 
@@ -606,6 +631,8 @@ pub fn build(p: Params, _: &BuildContext) -> Result<SurfelNode, BuildError> {
         graph: None,
         vertices: Vec::new(),
         scan_normals: Vec::new(),
+        disagreed: 0,
+        disagreeing: false,
     })
 }
 
