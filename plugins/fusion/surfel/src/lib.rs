@@ -197,19 +197,26 @@ impl Model {
 }
 
 /// Stage times of one frame, ms, for `metrics.json` (`fusion.<stage>` under `timing_ms`).
-#[derive(Default)]
 struct Stages {
     times: Vec<(&'static str, f64)>,
-    lap: Option<std::time::Instant>,
+    lap: std::time::Instant,
 }
 
 impl Stages {
+    /// Starts timing the first stage now.
+    fn start() -> Self {
+        Stages {
+            times: Vec::new(),
+            lap: std::time::Instant::now(),
+        }
+    }
+
     /// Ends the stage running since the last lap (or the start) as `name`.
     fn lap(&mut self, name: &'static str) {
         let now = std::time::Instant::now();
-        if let Some(t) = self.lap.replace(now) {
-            self.times.push((name, (now - t).as_secs_f64() * 1e3));
-        }
+        self.times
+            .push((name, (now - self.lap).as_secs_f64() * 1e3));
+        self.lap = now;
     }
 }
 
@@ -260,7 +267,6 @@ impl SurfelNode {
         outputs: &mut Outputs,
         st: &mut Stages,
     ) -> NodeResult<Flow> {
-        st.lap("");
         let (w, h) = (depth.map.width as usize, depth.map.height as usize);
         if depth.map.data.len() != w * h {
             return Err(NodeError::msg(format!(
@@ -603,7 +609,7 @@ impl Node for SurfelNode {
         let pair = inputs.opt::<StereoFrame>("stereo")?;
         let prior = inputs.opt::<Pose>("pose")?;
         let left = pair.map(|p| p.left.as_ref());
-        let mut st = Stages::default();
+        let mut st = Stages::start();
         let flow = self.frame(
             frame,
             depth,

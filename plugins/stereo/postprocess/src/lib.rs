@@ -157,6 +157,12 @@ pub fn clean(
             ));
         }
         let c = img.channels as usize;
+        if c == 0 || img.data.len() != w * h * c {
+            return Err(format!(
+                "the left image has {} bytes for {w}x{h} pixels of {c} channels",
+                img.data.len()
+            ));
+        }
         if p.mask_border {
             let invalid: Vec<bool> = match pair.left_mask.as_ref().filter(|m| m.data.len() == w * h)
             {
@@ -345,4 +351,55 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
         ],
         build,
     ))
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use misslam_framework::Image;
+    use std::sync::Arc;
+
+    #[test]
+    fn a_left_image_with_the_wrong_byte_count_is_an_error_naming_it() {
+        let (w, h) = (8u32, 6u32);
+        let calib = StereoCalib {
+            width: w,
+            height: h,
+            fx: 100.0,
+            fy: 100.0,
+            cx: 4.0,
+            cy: 3.0,
+            cx_right: 4.0,
+            baseline_mm: 5.0,
+        };
+        // Claims 8x6x3 but holds one row fewer (built field by field, as a plugin could).
+        let short = Image {
+            width: w,
+            height: h,
+            channels: 3,
+            data: vec![128; (w * (h - 1) * 3) as usize],
+        };
+        let full = Image::new(w, h, 3, vec![128; (w * h * 3) as usize]).unwrap();
+        let pair = |left: Image| StereoFrame {
+            index: 0,
+            timestamp: 0.0,
+            left: Arc::new(left),
+            right: Arc::new(full.clone()),
+            calib,
+            left_mask: None,
+            right_mask: None,
+        };
+        let depth = vec![60.0f32; (w * h) as usize];
+        let err = clean(
+            depth.clone(),
+            &calib,
+            Some(&pair(short)),
+            &Params::default(),
+        )
+        .err()
+        .unwrap();
+        assert!(err.contains("120 bytes") && err.contains("8x6"), "{err}");
+        assert!(clean(depth, &calib, Some(&pair(full.clone())), &Params::default()).is_ok());
+    }
 }

@@ -72,7 +72,8 @@ pub fn specular_mask(
 }
 
 /// Square dilation of a 0/1 mask by `r` pixels (separable max filter: a row pass, then a column
-/// pass, each a running maximum over shifted rows that vectorises; rows in parallel).
+/// pass, each a running maximum over shifted rows that vectorises; rows in parallel). A mask that
+/// is not `w` x `h` (callers check their sizes first) is returned unchanged.
 pub fn dilate(m: &[u8], w: usize, h: usize, r: usize) -> Vec<u8> {
     if w == 0 || h == 0 || m.len() != w * h {
         return m.to_vec();
