@@ -5,10 +5,10 @@
 
 use misslam_features_matching::guided::{match_guided, GuidedParams, KeypointGrid};
 use misslam_features_matching::{match_descriptors, MatchParams, MatchScratch};
-use misslam_framework::nalgebra::{Isometry3, Point3, Vector3};
+use misslam_framework::nalgebra::{Isometry3, Matrix3, Point3, Vector3};
 use misslam_framework::{Descriptors, Features, Keypoint, Match, TrackingState};
 
-use crate::pose::{estimate, Observation, RansacParams, StereoCamera};
+use crate::pose::{estimate, triangulation_cov, Observation, RansacParams, StereoCamera};
 
 /// Parameters of the tracker (`tracking.stereo`).
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
@@ -30,6 +30,11 @@ pub struct TrackerParams {
     pub chi2_threshold: f64,
     /// Reprojection sigma of a level-0 keypoint, pixels; it grows with the keypoint's size / 31.
     pub sigma_px: f64,
+    /// How far the tissue under the map's points moves (heartbeat, breathing), standard
+    /// deviation in mm, added to every residual's covariance: on a deforming organ the pose
+    /// then fits the points in millimetres rather than trading their motion for a rotation
+    /// (0: a rigid scene, ORB-SLAM2's pure reprojection error).
+    pub tissue_sigma_mm: f64,
     /// Refinement rounds (inliers re-classified between rounds) and Gauss-Newton iterations
     /// per round.
     pub refine_rounds: usize,
@@ -40,8 +45,17 @@ pub struct TrackerParams {
     /// A new keyframe is made when the inliers fall below this fraction of those of the first
     /// frame tracked against the reference keyframe.
     pub keyframe_overlap: f32,
-    /// Keyframes kept for relocalisation (the oldest is dropped first).
+    /// Keyframes kept for relocalisation and reuse (the oldest is dropped first).
     pub max_keyframes: usize,
+    /// Map reuse: when the reference keyframe's overlap drops, this many stored keyframes that
+    /// the current view sees best are tried first, and the oldest of them that still holds
+    /// `keyframe_overlap` of its inliers becomes the reference instead of a new keyframe.
+    /// Revisiting a place then tracks against the keyframe first made there, so the pose error
+    /// does not accumulate along a chain of keyframes (0 disables: every drop makes a keyframe).
+    pub reuse_candidates: usize,
+    /// Map reuse: fewest of a keyframe's 3D points, as a fraction, that must project into the
+    /// current image for it to be a candidate.
+    pub reuse_min_visible: f32,
     /// Fewest inliers to accept a relocalisation.
     pub relocalise_min_inliers: usize,
 }
@@ -61,11 +75,14 @@ impl Default for TrackerParams {
             ransac_confidence: 0.999,
             chi2_threshold: 7.815,
             sigma_px: 1.0,
+            tissue_sigma_mm: 1.0,
             refine_rounds: 4,
             refine_iterations: 10,
             min_inliers: 20,
             keyframe_overlap: 0.6,
             max_keyframes: 200,
+            reuse_candidates: 4,
+            reuse_min_visible: 0.5,
             relocalise_min_inliers: 30,
         }
     }
@@ -82,6 +99,12 @@ impl TrackerParams {
             ("chi2_threshold", self.chi2_threshold),
             ("sigma_px", self.sigma_px),
         ];
+        if !(self.tissue_sigma_mm >= 0.0 && self.tissue_sigma_mm.is_finite()) {
+            return Err(format!(
+                "`tissue_sigma_mm` must be finite and not negative, got {}",
+                self.tissue_sigma_mm
+            ));
+        }
         for (name, v) in positive {
             if v.is_nan() || v <= 0.0 {
                 return Err(format!("`{name}` must be positive, got {v}"));
@@ -114,6 +137,12 @@ impl TrackerParams {
                 self.keyframe_overlap
             ));
         }
+        if !(self.reuse_min_visible > 0.0 && self.reuse_min_visible <= 1.0) {
+            return Err(format!(
+                "`reuse_min_visible` must lie in (0, 1], got {}",
+                self.reuse_min_visible
+            ));
+        }
         if self.max_keyframes == 0 {
             return Err("`max_keyframes` must be at least 1".into());
         }
@@ -128,6 +157,7 @@ impl TrackerParams {
             refine_rounds: self.refine_rounds,
             refine_iterations: self.refine_iterations,
             min_inliers,
+            tissue_sigma_mm: self.tissue_sigma_mm,
         }
     }
 }
@@ -145,6 +175,8 @@ pub struct Keyframe {
     pub descriptors: Descriptors,
     /// Their 3D points in the world frame, mm.
     pub world: Vec<Vector3<f64>>,
+    /// The covariance of each, mm^2 (stereo triangulation, rotated into the world frame).
+    pub world_cov: Vec<Matrix3<f64>>,
     /// Inliers of the first frame tracked against it (0 until then).
     pub reference_inliers: usize,
 }
@@ -259,7 +291,7 @@ impl Tracker {
                 )));
             }
             let pose = initial.unwrap_or_else(Isometry3::identity);
-            self.insert_keyframe(frame, features, pose);
+            self.insert_keyframe(frame, features, cam, pose);
             self.last = Some(pose);
             return Ok(TrackResult {
                 pose,
@@ -296,9 +328,20 @@ impl Tracker {
                 }
                 let need_kf = (e.inlier_count as f32)
                     < self.params.keyframe_overlap * kf.reference_inliers as f32;
+                if need_kf {
+                    if let Some((k, cand, e)) =
+                        self.reuse(r, frame, features, cam, size, &e.world_from_camera)
+                    {
+                        self.reference = k;
+                        let state = TrackingState::Tracking;
+                        let r = self.success(frame, features, cam, &cand, &e, k, state, false);
+                        return Ok(r);
+                    }
+                }
                 let result = self.success(
                     frame,
                     features,
+                    cam,
                     &cand,
                     &e,
                     r,
@@ -329,7 +372,7 @@ impl Tracker {
                 let state = TrackingState::Relocalised;
                 self.reference = k;
                 self.velocity = Isometry3::identity();
-                Ok(self.success(frame, features, &cand, &e, k, state, false))
+                Ok(self.success(frame, features, cam, &cand, &e, k, state, false))
             }
             None => Ok(self.lose(format!(
                 "no keyframe of {} gives {} inliers",
@@ -337,6 +380,54 @@ impl Tracker {
                 self.params.relocalise_min_inliers
             ))),
         }
+    }
+
+    /// Map reuse: the oldest of the `reuse_candidates` keyframes (other than `skip`) that the
+    /// view at `pose` sees best which still tracks with `keyframe_overlap` of its reference
+    /// inliers.
+    fn reuse(
+        &self,
+        skip: usize,
+        frame: u64,
+        features: &Features,
+        cam: &StereoCamera,
+        (w, h): (u32, u32),
+        pose: &Isometry3<f64>,
+    ) -> Option<(usize, Candidates, crate::pose::PoseEstimate)> {
+        if self.params.reuse_candidates == 0 {
+            return None;
+        }
+        let camera_from_world = pose.inverse();
+        let mut seen: Vec<(f32, usize)> = self
+            .keyframes
+            .iter()
+            .enumerate()
+            .filter(|&(k, kf)| k != skip && kf.reference_inliers > 0 && !kf.world.is_empty())
+            .filter_map(|(k, kf)| {
+                let inside = kf
+                    .world
+                    .iter()
+                    .filter(|p| {
+                        cam.project(&(camera_from_world * Point3::from(**p)).coords)
+                            .is_some_and(|q| {
+                                q[0] >= 0.0 && q[1] >= 0.0 && q[0] < w as f64 && q[1] < h as f64
+                            })
+                    })
+                    .count();
+                let fraction = inside as f32 / kf.world.len() as f32;
+                (fraction >= self.params.reuse_min_visible).then_some((fraction, k))
+            })
+            .collect();
+        seen.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+        seen.truncate(self.params.reuse_candidates);
+        seen.sort_by_key(|&(_, k)| k);
+        let ransac = self.params.ransac(self.params.min_inliers);
+        seen.into_iter().find_map(|(_, k)| {
+            let cand = self.guided(k, features, cam, (w, h), pose);
+            let e = estimate(cam, &cand.obs, &ransac, frame ^ k as u64)?;
+            let need = self.params.keyframe_overlap * self.keyframes[k].reference_inliers as f32;
+            ((e.inlier_count as f32) >= need).then_some((k, cand, e))
+        })
     }
 
     fn lost_result(&self, reason: String) -> TrackResult {
@@ -363,6 +454,7 @@ impl Tracker {
         &mut self,
         frame: u64,
         features: &Features,
+        cam: &StereoCamera,
         cand: &Candidates,
         e: &crate::pose::PoseEstimate,
         kf_index: usize,
@@ -398,7 +490,7 @@ impl Tracker {
             })
             .collect();
         if need_keyframe {
-            self.insert_keyframe(frame, features, pose);
+            self.insert_keyframe(frame, features, cam, pose);
         }
         TrackResult {
             pose,
@@ -412,7 +504,13 @@ impl Tracker {
         }
     }
 
-    fn insert_keyframe(&mut self, frame: u64, features: &Features, pose: Isometry3<f64>) {
+    fn insert_keyframe(
+        &mut self,
+        frame: u64,
+        features: &Features,
+        cam: &StereoCamera,
+        pose: Isometry3<f64>,
+    ) {
         let points = features.points.as_deref().unwrap_or(&[]);
         let keep: Vec<usize> = (0..features.keypoints.len())
             .filter(|&i| points[i].iter().all(|v| v.is_finite()))
@@ -430,12 +528,23 @@ impl Tracker {
                 (pose * Point3::new(p[0] as f64, p[1] as f64, p[2] as f64)).coords
             })
             .collect();
+        let rotation = pose.rotation.to_rotation_matrix();
+        let world_cov = keep
+            .iter()
+            .map(|&i| {
+                let p = points[i];
+                let p = Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+                let sigma = self.sigma(&features.keypoints[i]);
+                rotation * triangulation_cov(cam, &p, sigma) * rotation.transpose()
+            })
+            .collect();
         self.keyframes.push(Keyframe {
             frame,
             pose,
             keypoints: keep.iter().map(|&i| features.keypoints[i]).collect(),
             descriptors,
             world,
+            world_cov,
             reference_inliers: 0,
         });
         self.reference = self.keyframes.len() - 1;
@@ -451,6 +560,7 @@ impl Tracker {
         cam: &StereoCamera,
         c: usize,
         world: Vector3<f64>,
+        world_cov: Matrix3<f64>,
     ) -> Option<Observation> {
         let p = features.points.as_ref()?[c];
         if !p.iter().all(|v| v.is_finite()) || p[2] <= 0.0 {
@@ -463,8 +573,14 @@ impl Tracker {
             camera: Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64),
             uv: [k.x as f64, k.y as f64],
             u_right: k.x as f64 - disparity,
-            sigma: self.params.sigma_px * (k.size as f64 / 31.0).max(1.0),
+            sigma: self.sigma(k),
+            world_cov,
         })
+    }
+
+    /// Image-position standard deviation of a keypoint, pixels.
+    fn sigma(&self, k: &Keypoint) -> f64 {
+        self.params.sigma_px * (k.size as f64 / 31.0).max(1.0)
     }
 
     fn candidates(
@@ -474,15 +590,19 @@ impl Tracker {
         cam: &StereoCamera,
         m: &[Match],
     ) -> Candidates {
-        let world = &self.keyframes[kf].world;
+        let (world, cov) = (&self.keyframes[kf].world, &self.keyframes[kf].world_cov);
         let mut out = Candidates {
             pairs: Vec::with_capacity(m.len()),
             obs: Vec::with_capacity(m.len()),
         };
         for m in m {
-            if let Some(o) =
-                self.observation(features, cam, m.query as usize, world[m.train as usize])
-            {
+            if let Some(o) = self.observation(
+                features,
+                cam,
+                m.query as usize,
+                world[m.train as usize],
+                cov[m.train as usize],
+            ) {
                 out.pairs.push((m.query, m.train));
                 out.obs.push(o);
             }

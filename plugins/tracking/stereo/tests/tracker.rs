@@ -152,6 +152,68 @@ fn exact_sequence_is_tracked_exactly_with_keyframes() {
 }
 
 #[test]
+fn revisiting_reuses_the_stored_keyframes_instead_of_chaining_new_ones() {
+    // Out and back along the wall three times: with map reuse the keyframes made on the first
+    // way out serve every later pass (no new keyframe, so no chain along which an error could
+    // grow); without it every drop of overlap makes one more.
+    let world = World::new();
+    let sweep = |i: usize| {
+        let k = i % 78;
+        if k < 40 {
+            k
+        } else {
+            78 - k
+        }
+    };
+    let run = |reuse_candidates: usize| {
+        let params = TrackerParams {
+            reuse_candidates,
+            ..TrackerParams::default()
+        };
+        let mut tracker = Tracker::new(params);
+        let mut after_first_pass = 0;
+        let mut reused = 0;
+        for i in 0..234 {
+            let truth = pose_at(sweep(i));
+            let r = tracker
+                .track(
+                    i as u64,
+                    &world.observe(&truth),
+                    &camera(),
+                    (640, 480),
+                    Some(truth),
+                )
+                .unwrap();
+            assert_eq!(
+                r.state,
+                TrackingState::Tracking,
+                "frame {i}: {:?}",
+                r.reason
+            );
+            assert!(error_mm(&r.pose, &truth) < 1e-3, "frame {i}");
+            if i == 39 {
+                after_first_pass = tracker.keyframes().len();
+            }
+            if i > 39 && r.keyframe.is_some_and(|k| k < 40) && !r.new_keyframe {
+                reused += 1;
+            }
+        }
+        (after_first_pass, tracker.keyframes().len(), reused)
+    };
+    let (first, total, reused) = run(TrackerParams::default().reuse_candidates);
+    assert!(first >= 2, "{first} keyframes on the way out");
+    assert_eq!(total, first, "keyframes made after the first pass");
+    assert!(
+        reused > 150,
+        "{reused} of 194 later frames tracked against first-pass keyframes"
+    );
+    let (first_off, total_off, _) = run(0);
+    assert_eq!(first_off, first);
+    // Measured: 2 keyframes with reuse, 3 without (the way back makes one more, at the start).
+    assert!(total_off > total, "{total_off} keyframes without reuse");
+}
+
+#[test]
 fn a_black_frame_is_lost_and_the_next_view_relocalises() {
     let world = World::new();
     let mut tracker = Tracker::new(TrackerParams::default());
@@ -219,6 +281,31 @@ fn features_without_points_or_mismatched_lengths_are_errors() {
         ..TrackerParams::default()
     };
     assert!(bad.validate().unwrap_err().contains("keyframe_overlap"));
+    for (bad, field) in [
+        (
+            TrackerParams {
+                tissue_sigma_mm: -1.0,
+                ..TrackerParams::default()
+            },
+            "tissue_sigma_mm",
+        ),
+        (
+            TrackerParams {
+                tissue_sigma_mm: f64::NAN,
+                ..TrackerParams::default()
+            },
+            "tissue_sigma_mm",
+        ),
+        (
+            TrackerParams {
+                reuse_min_visible: 0.0,
+                ..TrackerParams::default()
+            },
+            "reuse_min_visible",
+        ),
+    ] {
+        assert!(bad.validate().unwrap_err().contains(field), "{field}");
+    }
 }
 
 /// ORB on the rendered phantom (tissue texture, specular light, sensor noise) through a fast,
