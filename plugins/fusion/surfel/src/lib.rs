@@ -438,31 +438,52 @@ impl SurfelNode {
                     let wn = pose.rotation * vec3(n);
                     let color = color_at(left, i);
                     let quality = color_quality(n, color);
-                    let (_, s) = cell[gy * gw + gx];
-                    if s != u32::MAX {
-                        let s = s as usize;
-                        let d = wp - live[s];
-                        if d.norm() <= self.p.fuse_distance_mm && wn.dot(&live_n[s]) >= cos_f {
-                            let (a_inv, a_t) = local_inverses(&m.bindings[s], &nm);
-                            let wgt = m.weights[s];
-                            let alpha = 1.0 / (wgt as f64 + 1.0);
-                            m.canon[s] += a_inv * d * alpha;
-                            let cn = m.normals[s] * (1.0 - alpha) + a_t * wn * alpha;
-                            m.normals[s] = cn.try_normalize(1e-12).unwrap_or(m.normals[s]);
-                            if quality >= m.color_quality[s] {
-                                m.colors[s] = color;
-                                m.color_quality[s] = quality;
+                    // The surfel this sample meets: the closest, within epsilon_df, of the
+                    // front-most surfels of its cell and the 8 around it. Surfels are points,
+                    // so a cell can be empty where the surface is modelled (the view moved or
+                    // came closer): looking one cell further keeps such a sample from adding
+                    // a duplicate beside a surfel of the same surface.
+                    let mut best: Option<(f64, usize)> = None;
+                    let mut turned_away = false;
+                    for cy in gy.saturating_sub(1)..(gy + 2).min(gh) {
+                        for cx in gx.saturating_sub(1)..(gx + 2).min(gw) {
+                            let (_, s) = cell[cy * gw + cx];
+                            if s == u32::MAX {
+                                continue;
                             }
-                            m.weights[s] = (wgt + 1.0).min(self.p.max_weight);
-                            m.seen[s] = frame.index;
-                            m.stability[s] += 1.0;
-                            fused += 1;
-                            continue;
+                            let s = s as usize;
+                            let dist = (wp - live[s]).norm();
+                            if dist > self.p.fuse_distance_mm {
+                                continue;
+                            }
+                            if wn.dot(&live_n[s]) < cos_f {
+                                turned_away = true;
+                            } else if best.is_none_or(|(b, _)| dist < b) {
+                                best = Some((dist, s));
+                            }
                         }
-                        if d.norm() <= self.p.fuse_distance_mm {
-                            // Close but turned away: neither fused nor a duplicate.
-                            continue;
+                    }
+                    if let Some((_, s)) = best {
+                        let d = wp - live[s];
+                        let (a_inv, a_t) = local_inverses(&m.bindings[s], &nm);
+                        let wgt = m.weights[s];
+                        let alpha = 1.0 / (wgt as f64 + 1.0);
+                        m.canon[s] += a_inv * d * alpha;
+                        let cn = m.normals[s] * (1.0 - alpha) + a_t * wn * alpha;
+                        m.normals[s] = cn.try_normalize(1e-12).unwrap_or(m.normals[s]);
+                        if quality >= m.color_quality[s] {
+                            m.colors[s] = color;
+                            m.color_quality[s] = quality;
                         }
+                        m.weights[s] = (wgt + 1.0).min(self.p.max_weight);
+                        m.seen[s] = frame.index;
+                        m.stability[s] += 1.0;
+                        fused += 1;
+                        continue;
+                    }
+                    if turned_away {
+                        // Close but turned away: neither fused nor a duplicate.
+                        continue;
                     }
                     new_points.push((wp, wn, color, quality));
                 }
