@@ -292,3 +292,52 @@ fn sgm_on_the_phantom_regression() {
         assert!(mae < max_mae, "noise {noise}: MAE {mae} mm");
     }
 }
+
+#[test]
+fn per_frame_metrics_and_poses_are_written_as_lines() {
+    // The scored GT depth: one metrics line per frame (each with the frame index), one pose line
+    // per frame; a second run into the same folder starts both files afresh.
+    let text = r#"
+[graph]
+frames = { count = 3 }
+
+[[node]]
+id = "src"
+plugin = "source.phantom"
+params = { width = 96, height = 72, focal_px = 105.0, mesh_step_mm = 3.0 }
+
+[[node]]
+id = "depth"
+plugin = "eval.depth"
+inputs = { depth = "src.depth_gt", depth_gt = "src.depth_gt" }
+
+[[node]]
+id = "files"
+plugin = "sink.files"
+inputs = { metrics = "depth.metrics", pose = "src.pose_gt" }
+"#;
+    let out = common::tmp_dir("phantom-metrics-lines");
+    for _ in 0..2 {
+        let g = graph::parse(
+            Path::new("lines.toml"),
+            text,
+            &misslam::builtin_registry(),
+            &[],
+        )
+        .unwrap();
+        common::run_graph_ok(g, &out);
+    }
+    let lines = std::fs::read_to_string(out.join("files/metrics.jsonl")).unwrap();
+    let rows: Vec<serde_json::Value> = lines
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(rows.len(), 3, "{lines}");
+    for (i, r) in rows.iter().enumerate() {
+        assert_eq!(r["frame"], i as u64);
+        assert_eq!(r["depth.mae_mm"], 0.0, "{r}");
+        assert_eq!(r["depth.density_pct"], 100.0, "{r}");
+    }
+    let poses = std::fs::read_to_string(out.join("files/pose.txt")).unwrap();
+    assert_eq!(poses.lines().count(), 3, "{poses}");
+}

@@ -164,11 +164,6 @@ impl Node for FilesSink {
                     // frame is a comment line, so readers skip it and nothing is guessed.
                     ensure_dir(&root)?;
                     let path = root.join(format!("{}.txt", spec.name));
-                    let mut f = std::fs::OpenOptions::new()
-                        .create(true)
-                        .append(true)
-                        .open(&path)
-                        .map_err(|e| NodeError::msg(format!("{}: {e}", path.display())))?;
                     let iso = pose.world_from_camera;
                     let (t, q) = (iso.translation.vector, iso.rotation);
                     let line = if pose.state == misslam_framework::TrackingState::Lost {
@@ -179,8 +174,23 @@ impl Node for FilesSink {
                             frame.index, t.x, t.y, t.z, q.i, q.j, q.k, q.w
                         )
                     };
-                    std::io::Write::write_all(&mut f, line.as_bytes())
-                        .map_err(|e| NodeError::msg(format!("{}: {e}", path.display())))?;
+                    append(&path, &line)?;
+                }
+                Payload::Metrics(m) => {
+                    // Every frame, one JSON object per line: the frame index and the values
+                    // (a value that is not finite is written as null, as JSON has no NaN).
+                    ensure_dir(&root)?;
+                    let path = root.join(format!("{}.jsonl", spec.name));
+                    let mut line = serde_json::Map::new();
+                    line.insert("frame".into(), frame.index.into());
+                    for (k, &v) in &m.values {
+                        let v = serde_json::Number::from_f64(v)
+                            .map_or(serde_json::Value::Null, serde_json::Value::Number);
+                        line.insert(k.clone(), v);
+                    }
+                    let mut text = serde_json::Value::Object(line).to_string();
+                    text.push('\n');
+                    append(&path, &text)?;
                 }
                 Payload::PointCloud(_) | Payload::Model(_) | Payload::Mesh(_) => {
                     self.last_geometry[i] = Some(payload.clone());
@@ -195,10 +205,14 @@ impl Node for FilesSink {
     }
 
     fn start(&mut self, ctx: &mut NodeContext) -> NodeResult<()> {
-        // Trajectories are appended frame by frame: start from an empty file.
+        // Trajectories and metrics are appended frame by frame: start from an empty file.
         let root = ctx.out_dir.join(&self.params.dir);
-        for spec in self.ports.iter().filter(|s| s.ty == PortType::Pose) {
-            let path = root.join(format!("{}.txt", spec.name));
+        for spec in &self.ports {
+            let path = match spec.ty {
+                PortType::Pose => root.join(format!("{}.txt", spec.name)),
+                PortType::Metrics => root.join(format!("{}.jsonl", spec.name)),
+                _ => continue,
+            };
             if path.exists() {
                 std::fs::remove_file(&path)
                     .map_err(|e| NodeError::msg(format!("{}: {e}", path.display())))?;
@@ -216,6 +230,17 @@ impl Node for FilesSink {
         }
         Ok(())
     }
+}
+
+/// Appends `text` to the file at `path`, creating it.
+fn append(path: &Path, text: &str) -> NodeResult<()> {
+    let mut f = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)
+        .map_err(|e| NodeError::msg(format!("{}: {e}", path.display())))?;
+    std::io::Write::write_all(&mut f, text.as_bytes())
+        .map_err(|e| NodeError::msg(format!("{}: {e}", path.display())))
 }
 
 fn ports() -> Vec<PortSpec> {
@@ -255,6 +280,11 @@ fn ports() -> Vec<PortSpec> {
             "pose",
             PortType::Pose,
             "every frame into <dir>/pose.txt (TUM: frame tx ty tz qx qy qz qw; lost frames as comments)",
+        ),
+        PortSpec::optional(
+            "metrics",
+            PortType::Metrics,
+            "a node's per-frame metrics, every frame as a line of <dir>/metrics.jsonl ({\"frame\": n, key: value, ...}; not finite: null)",
         ),
     ]
 }
