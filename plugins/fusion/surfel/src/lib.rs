@@ -8,7 +8,8 @@
 //!    and `visible_angle_deg`) and solve the ED warp on them (batch, or decoupled PR / PI), with
 //!    the tracker's pose as prior; unseen surfels follow as rigidly as the graph allows;
 //! 3. fuse every `stride`-th depth pixel into the surfel it meets within `fuse_distance_mm` /
-//!    `fuse_angle_deg` (confidence-weighted average, weight capped at `max_weight`; colour from
+//!    `fuse_angle_deg` (the closest of the front-most surfels of its index-map cell and the 8
+//!    around it; confidence-weighted average, weight capped at `max_weight`; colour from
 //!    the most frontal and saturated observation, so the texture stays vivid and specular
 //!    highlights do not bake in), or add a new surfel;
 //! 4. remove unstable surfels (weight below `stable_weight` and unseen for `unstable_frames`);
