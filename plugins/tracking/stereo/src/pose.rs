@@ -5,9 +5,10 @@
 //!
 //! On a deforming organ the map's points have moved since they were stored, and that motion,
 //! isotropic in millimetres, is far larger than the pixel noise. Each residual is therefore
-//! weighted by `C = sigma^2 I + sigma_t^2 J J^T` (J: the derivative of (u, v, u_right) by the
-//! camera-frame point, sigma_t the tissue motion in mm): with `sigma_t = 0` this is ORB-SLAM2's
-//! reprojection error; with tissue motion the lateral image error of a near point counts for
+//! weighted by `C = sigma^2 I + J (R S R^T + sigma_t^2 I) J^T` (J: the derivative of
+//! (u, v, u_right) by the camera-frame point, S the map point's own triangulation covariance,
+//! R the camera's rotation, sigma_t the tissue motion in mm): with `sigma_t = 0` and exact map
+//! points this is ORB-SLAM2's reprojection error; with tissue motion the lateral image error of a near point counts for
 //! what it is in millimetres, and the fit no longer trades a few millimetres of heartbeat for a
 //! rotation of several degrees (the depth direction stays dominated by the disparity noise).
 
@@ -86,20 +87,21 @@ impl StereoCamera {
         tissue_sigma_mm: f64,
     ) -> f64 {
         let pc = (camera_from_world * Point3::from(o.world)).coords;
-        match self.residual(&pc, &camera_from_world.rotation, o, tissue_sigma_mm) {
+        let rotation = camera_from_world.rotation.to_rotation_matrix().into_inner();
+        match self.residual(&pc, &rotation, o, tissue_sigma_mm) {
             Some((r, _, info)) => r.dot(&(info * r)),
             None => f64::INFINITY,
         }
     }
 
-    /// The residual (u, v, u_right) of `o` at the camera-frame point `pc` (`rotation`: that of
-    /// `camera_from_world`), the derivative of the projection by the point, and the residual's
+    /// The residual (u, v, u_right) of `o` at the camera-frame point `pc` (`rotation`: the
+    /// matrix of `camera_from_world`'s rotation), the derivative of the projection by the point, and the residual's
     /// information matrix (inverse covariance: pixel noise, the map point's own covariance and
     /// the tissue motion); None behind the camera.
     fn residual(
         &self,
         pc: &Vector3<f64>,
-        rotation: &UnitQuaternion<f64>,
+        rotation: &Matrix3<f64>,
         o: &Observation,
         tissue_sigma_mm: f64,
     ) -> Option<(Vector3<f64>, Matrix3<f64>, Matrix3<f64>)> {
@@ -122,8 +124,7 @@ impl StereoCamera {
         let s2 = o.sigma * o.sigma;
         let t2 = tissue_sigma_mm * tissue_sigma_mm;
         let info = if t2 > 0.0 || o.world_cov != Matrix3::zeros() {
-            let r = rotation.to_rotation_matrix();
-            let point = r * o.world_cov * r.transpose() + Matrix3::identity() * t2;
+            let point = rotation * o.world_cov * rotation.transpose() + Matrix3::identity() * t2;
             (Matrix3::identity() * s2 + jp * point * jp.transpose()).try_inverse()?
         } else {
             Matrix3::identity() / s2
@@ -305,9 +306,10 @@ fn gauss_newton_step<'a>(
 ) -> Option<(Isometry3<f64>, f64)> {
     let mut h = Matrix6::<f64>::zeros();
     let mut g = Vector6::<f64>::zeros();
+    let rotation = t.rotation.to_rotation_matrix().into_inner();
     for o in obs {
         let pc = (t * Point3::from(o.world)).coords;
-        let Some((r, jp, info)) = cam.residual(&pc, &t.rotation, o, tissue_sigma_mm) else {
+        let Some((r, jp, info)) = cam.residual(&pc, &rotation, o, tissue_sigma_mm) else {
             continue;
         };
         // d(camera point) / d(xi) = [-[p]x | I].

@@ -382,9 +382,9 @@ impl Tracker {
         }
     }
 
-    /// Map reuse: the oldest of the `reuse_candidates` keyframes (other than `skip`) that the
-    /// view at `pose` sees best which still tracks with `keyframe_overlap` of its reference
-    /// inliers.
+    /// Map reuse: the oldest of the `reuse_candidates` keyframes (other than `skip`, and only
+    /// those already tracked against, which have reference inliers) that the view at `pose`
+    /// sees best which still tracks with `keyframe_overlap` of its reference inliers.
     fn reuse(
         &self,
         skip: usize,
@@ -407,12 +407,7 @@ impl Tracker {
                 let inside = kf
                     .world
                     .iter()
-                    .filter(|p| {
-                        cam.project(&(camera_from_world * Point3::from(**p)).coords)
-                            .is_some_and(|q| {
-                                q[0] >= 0.0 && q[1] >= 0.0 && q[0] < w as f64 && q[1] < h as f64
-                            })
-                    })
+                    .filter(|p| in_image(cam, &camera_from_world, p, (w, h)).is_some())
                     .count();
                 let fraction = inside as f32 / kf.world.len() as f32;
                 (fraction >= self.params.reuse_min_visible).then_some((fraction, k))
@@ -623,14 +618,7 @@ impl Tracker {
         let predicted: Vec<[f32; 2]> = k
             .world
             .iter()
-            .map(
-                |p| match cam.project(&(camera_from_world * Point3::from(*p)).coords) {
-                    Some(q) if q[0] >= 0.0 && q[1] >= 0.0 && q[0] < w as f64 && q[1] < h as f64 => {
-                        [q[0] as f32, q[1] as f32]
-                    }
-                    _ => [f32::NAN; 2],
-                },
-            )
+            .map(|p| in_image(cam, &camera_from_world, p, (w, h)).unwrap_or([f32::NAN; 2]))
             .collect();
         let octaves: Vec<i32> = k.keypoints.iter().map(|k| k.octave).collect();
         let grid = KeypointGrid::build(&features.keypoints, w, h, 32.0);
@@ -665,4 +653,17 @@ impl Tracker {
         )?;
         Ok(self.candidates(kf, features, cam, &m))
     }
+}
+
+/// The left-image position of the world point `p` seen through `camera_from_world`, when it
+/// lies in front of the camera and inside the `(w, h)` image.
+fn in_image(
+    cam: &StereoCamera,
+    camera_from_world: &Isometry3<f64>,
+    p: &Vector3<f64>,
+    (w, h): (u32, u32),
+) -> Option<[f32; 2]> {
+    let q = cam.project(&(camera_from_world * Point3::from(*p)).coords)?;
+    (q[0] >= 0.0 && q[1] >= 0.0 && q[0] < w as f64 && q[1] < h as f64)
+        .then_some([q[0] as f32, q[1] as f32])
 }
