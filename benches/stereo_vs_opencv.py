@@ -59,9 +59,10 @@ def scores(est, gt, mask=None):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--misslam", default="target/debug/misslam")
-    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--runs", type=int, default=9)
     ap.add_argument("--json", help="also write the rows here")
     ap.add_argument("--threads", default="1,2", help="thread counts to run, e.g. 1 or 1,2")
+    ap.add_argument("--sgm-only", action="store_true", help="skip the ELAS rows")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     left, right, gt = skimage.data.stereo_motorcycle()
@@ -105,10 +106,15 @@ def main():
                     ("misslam depth.elas robotics + subpixel", "graphs/depth_elas.toml", ["depth.preset=robotics", "depth.disp_max=255", "depth.subpixel=true"]),
                     ("misslam depth.elas middlebury", "graphs/depth_elas.toml", ["depth.preset=middlebury", "depth.disp_max=255", "depth.subpixel=false"]),
                 ]
+                if args.sgm_only:
+                    misslam_runs = misslam_runs[:1]
                 for name, graph, sets in misslam_runs:
                     out = f"{tmp}/out"
+                    # graph.parallel=false: the depth node runs alone, as OpenCV's call does
+                    # (not beside the source decoding and the sink encoding the next frame).
                     cmd = [args.misslam, "run", graph, "--quiet", "--out", out,
-                           "--set", f"src.path={tmp}", "--set", "src.mask_border=false"]
+                           "--set", f"src.path={tmp}", "--set", "src.mask_border=false",
+                           "--set", "graph.parallel=false"]
                     for kv in sets:
                         cmd += ["--set", kv]
                     subprocess.run(cmd, check=True, env=dict(os.environ, RAYON_NUM_THREADS=str(threads)), stderr=subprocess.DEVNULL)

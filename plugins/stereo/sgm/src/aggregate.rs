@@ -16,20 +16,69 @@ pub(crate) const FAR: i16 = i16::MAX;
 #[derive(Default)]
 pub(crate) struct PassScratch {
     /// Costs of the current row, W x D' (padding lanes FAR).
-    cost: Vec<i16>,
+    pub(crate) cost: Vec<i16>,
     /// The right census row reversed and padded, so one pixel's candidates are contiguous.
-    rev: Vec<u64>,
+    pub(crate) rev: Vec<u64>,
     /// Paths from the previous row (NV = 3 with 8 paths, 1 with 4): W + 2 slots of NV segments
     /// of GUARD + D' lanes (the paths of one pixel side by side, one memory stream); slots 0
     /// and W + 1 are zero, the start of a path at the image border.
-    paths: Vec<i16>,
+    pub(crate) paths: Vec<i16>,
     /// Minimum over d of each slot of `paths`.
-    mins: Vec<i16>,
+    pub(crate) mins: Vec<i16>,
     /// The L held back a pixel (see [`pass_n`]): the previous pixel's, and this pixel's.
-    held: Vec<i16>,
-    holding: Vec<i16>,
+    pub(crate) held: Vec<i16>,
+    pub(crate) holding: Vec<i16>,
     /// The path along the row: the previous pixel's L, overwritten in place (one guarded slot).
-    row_path: Vec<i16>,
+    pub(crate) row_path: Vec<i16>,
+}
+
+impl PassScratch {
+    /// Sizes and resets the buffers for a pass with `nv` paths from the previous row.
+    pub(crate) fn begin(&mut self, ctx: &Ctx, nv: usize) {
+        let (w, nd, dp) = (ctx.w, ctx.nd, ctx.dp);
+        self.paths.clear();
+        push_paths(&mut self.paths, nv * (w + 2), dp);
+        self.mins.clear();
+        self.mins.resize(nv * (w + 2), 0);
+        self.held.clear();
+        self.held.resize(dp, 0);
+        self.holding.clear();
+        self.holding.resize(dp, 0);
+        self.cost.clear();
+        self.cost.resize(w * dp, FAR);
+        let pad = nd + ctx.p.min_disparity.unsigned_abs() as usize + 1;
+        self.rev.clear();
+        self.rev.resize(w + 2 * pad, 0);
+    }
+
+    /// The matching costs of row `y` into `self.cost` (W x D', padding lanes FAR). Inlined, so
+    /// the caller's target features (POPCNT) apply.
+    #[inline(always)]
+    pub(crate) fn row_costs(&mut self, ctx: &Ctx, y: usize, costs: &mut Costs) {
+        let (w, nd, dp) = (ctx.w, ctx.nd, ctx.dp);
+        let pad = nd + ctx.p.min_disparity.unsigned_abs() as usize + 1;
+        let unknown = i16::from(ctx.p.unknown_cost());
+        match costs {
+            Costs::Compute => cost_row(ctx, y, pad, unknown, &mut self.rev, &mut self.cost),
+            Costs::Store(vol) => {
+                cost_row(ctx, y, pad, unknown, &mut self.rev, &mut self.cost);
+                let dst = &mut vol[y * w * nd..(y + 1) * w * nd];
+                for (d, c) in dst.chunks_exact_mut(nd).zip(self.cost.chunks_exact(dp)) {
+                    for (o, &v) in d.iter_mut().zip(c) {
+                        *o = v as u8;
+                    }
+                }
+            }
+            Costs::Load(vol) => {
+                let src = &vol[y * w * nd..(y + 1) * w * nd];
+                for (c, d) in self.cost.chunks_exact_mut(dp).zip(src.chunks_exact(nd)) {
+                    for (o, &v) in c.iter_mut().zip(d) {
+                        *o = i16::from(v);
+                    }
+                }
+            }
+        }
+    }
 }
 
 /// One step of the path recurrence for all disparities:
@@ -105,27 +154,16 @@ pub(crate) fn pass(
     after_row: impl FnMut(usize, &mut [i16]),
 ) {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("popcnt")
-    {
+    if crate::simd::avx2() {
         // SAFETY: the CPU supports AVX2 and POPCNT (checked just above).
-        unsafe { pass_avx2(forward, ctx, ps, init, costs, out, after_row) };
+        unsafe { crate::aggregate_avx2::pass(forward, ctx, ps, init, costs, out, after_row) };
         return;
     }
-    pass_generic::<Portable>(forward, ctx, ps, init, costs, out, after_row);
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,popcnt")]
-fn pass_avx2(
-    forward: bool,
-    ctx: &Ctx,
-    ps: &mut PassScratch,
-    init: Option<&[i16]>,
-    costs: Costs,
-    out: &mut [i16],
-    after_row: impl FnMut(usize, &mut [i16]),
-) {
-    pass_generic::<Avx2>(forward, ctx, ps, init, costs, out, after_row);
+    if ctx.vdx.len() == 3 {
+        pass_n::<3>(forward, ctx, ps, init, costs, out, after_row);
+    } else {
+        pass_n::<1>(forward, ctx, ps, init, costs, out, after_row);
+    }
 }
 
 /// 16 lanes of `s` from `at`.
@@ -175,105 +213,9 @@ fn step(
     out
 }
 
-/// The lane arithmetic of a pass: portable arrays (SSE2 through autovectorisation) or AVX2
-/// intrinsics (the shuffles for d - 1 and d + 1 do not autovectorise well).
-trait Kernel {
-    #[allow(clippy::too_many_arguments)]
-    fn step(
-        cost: &[i16; LANES],
-        lo: &[i16; LANES],
-        a: &[i16; LANES],
-        hi: &[i16; LANES],
-        min_prev: i16,
-        p1: i16,
-        jump: i16,
-        mn: &mut [i16; LANES],
-        acc: &mut [i16; LANES],
-    ) -> [i16; LANES];
-}
-
-struct Portable;
-
-impl Kernel for Portable {
-    #[inline(always)]
-    fn step(
-        cost: &[i16; LANES],
-        lo: &[i16; LANES],
-        a: &[i16; LANES],
-        hi: &[i16; LANES],
-        min_prev: i16,
-        p1: i16,
-        jump: i16,
-        mn: &mut [i16; LANES],
-        acc: &mut [i16; LANES],
-    ) -> [i16; LANES] {
-        step(cost, lo, a, hi, min_prev, p1, jump, mn, acc)
-    }
-}
-
-/// Only named by [`pass_avx2`], which runs after AVX2 was detected.
-#[cfg(target_arch = "x86_64")]
-struct Avx2;
-
-#[cfg(target_arch = "x86_64")]
-impl Kernel for Avx2 {
-    #[inline(always)]
-    fn step(
-        cost: &[i16; LANES],
-        lo: &[i16; LANES],
-        a: &[i16; LANES],
-        hi: &[i16; LANES],
-        min_prev: i16,
-        p1: i16,
-        jump: i16,
-        mn: &mut [i16; LANES],
-        acc: &mut [i16; LANES],
-    ) -> [i16; LANES] {
-        // SAFETY: `Avx2` is used only inside `pass_avx2`, which is called after
-        // `is_x86_feature_detected!("avx2")`.
-        unsafe { step_avx2(cost, lo, a, hi, min_prev, p1, jump, mn, acc) }
-    }
-}
-
-/// [`step`] with AVX2 intrinsics: d - 1 is `alignr` of the chunk with the last lane of the one
-/// below, d + 1 with the first lane of the one above.
-#[cfg(target_arch = "x86_64")]
-#[allow(clippy::too_many_arguments)]
-#[target_feature(enable = "avx2")]
-#[inline]
-fn step_avx2(
-    cost: &[i16; LANES],
-    lo: &[i16; LANES],
-    a: &[i16; LANES],
-    hi: &[i16; LANES],
-    min_prev: i16,
-    p1: i16,
-    jump: i16,
-    mn: &mut [i16; LANES],
-    acc: &mut [i16; LANES],
-) -> [i16; LANES] {
-    use std::arch::x86_64::*;
-    // SAFETY: [i16; 16] and __m256i have the same size and every bit pattern is valid in both.
-    let v = |x: &[i16; LANES]| unsafe { std::mem::transmute::<[i16; LANES], __m256i>(*x) };
-    let (lo, a, hi, c) = (v(lo), v(a), v(hi), v(cost));
-    let am = _mm256_alignr_epi8::<14>(a, _mm256_permute2x128_si256::<0x21>(lo, a));
-    let ap = _mm256_alignr_epi8::<2>(_mm256_permute2x128_si256::<0x21>(a, hi), a);
-    let p1v = _mm256_set1_epi16(p1);
-    let best = _mm256_min_epi16(
-        _mm256_min_epi16(a, _mm256_set1_epi16(jump)),
-        _mm256_min_epi16(_mm256_adds_epi16(am, p1v), _mm256_adds_epi16(ap, p1v)),
-    );
-    let out = _mm256_adds_epi16(c, _mm256_sub_epi16(best, _mm256_set1_epi16(min_prev)));
-    // SAFETY: as above, back to arrays.
-    let arr = |x: __m256i| unsafe { std::mem::transmute::<__m256i, [i16; LANES]>(x) };
-    *mn = arr(_mm256_min_epi16(v(mn), out));
-    *acc = arr(_mm256_adds_epi16(v(acc), out));
-    arr(out)
-}
-
 /// Appends `slots` path slots: GUARD lanes at FAR, then D' disparities at 0 (a path start:
 /// L = C), and a trailing guard.
-fn push_paths(buf: &mut Vec<i16>, slots: usize, dp: usize) {
+pub(crate) fn push_paths(buf: &mut Vec<i16>, slots: usize, dp: usize) {
     for _ in 0..slots {
         buf.extend(std::iter::repeat_n(FAR, GUARD));
         buf.extend(std::iter::repeat_n(0, dp));
@@ -281,29 +223,12 @@ fn push_paths(buf: &mut Vec<i16>, slots: usize, dp: usize) {
     buf.extend(std::iter::repeat_n(FAR, GUARD));
 }
 
-#[inline(always)]
-fn pass_generic<K: Kernel>(
-    forward: bool,
-    ctx: &Ctx,
-    ps: &mut PassScratch,
-    init: Option<&[i16]>,
-    costs: Costs,
-    out: &mut [i16],
-    after_row: impl FnMut(usize, &mut [i16]),
-) {
-    if ctx.vdx.len() == 3 {
-        pass_n::<3, K>(forward, ctx, ps, init, costs, out, after_row);
-    } else {
-        pass_n::<1, K>(forward, ctx, ps, init, costs, out, after_row);
-    }
-}
-
 /// The pass with `NV` paths from the previous row (3 with 8 paths, 1 with 4) and one along the
 /// row. The previous-row paths are updated in place: pixel x reads slot x - dx + 1 and its new
 /// L goes to slot x + 1 once the pixel is done; for the path whose dx equals the traversal step
 /// the next pixel still needs the old slot x + 1, so that write waits one pixel.
 #[inline(always)]
-fn pass_n<const NV: usize, K: Kernel>(
+fn pass_n<const NV: usize>(
     forward: bool,
     ctx: &Ctx,
     ps: &mut PassScratch,
@@ -312,50 +237,18 @@ fn pass_n<const NV: usize, K: Kernel>(
     out: &mut [i16],
     mut after_row: impl FnMut(usize, &mut [i16]),
 ) {
-    let (w, h, nd, dp, p) = (ctx.w, ctx.h, ctx.nd, ctx.dp, ctx.p);
+    let (w, h, dp, p) = (ctx.w, ctx.h, ctx.dp, ctx.p);
     let stride = ctx.stride();
     let mut vdx = [0isize; NV];
     vdx.copy_from_slice(ctx.vdx);
     let step_x: isize = if forward { 1 } else { -1 };
     let row_len = w * dp;
     let whole = out.len() == h * row_len;
-    ps.paths.clear();
-    push_paths(&mut ps.paths, NV * (w + 2), dp);
-    ps.mins.clear();
-    ps.mins.resize(NV * (w + 2), 0);
-    ps.held.clear();
-    ps.held.resize(dp, 0);
-    ps.holding.clear();
-    ps.holding.resize(dp, 0);
-    ps.cost.clear();
-    ps.cost.resize(row_len, FAR);
-    let pad = nd + p.min_disparity.unsigned_abs() as usize + 1;
-    ps.rev.clear();
-    ps.rev.resize(w + 2 * pad, 0);
-    let unknown = i16::from(p.unknown_cost());
+    ps.begin(ctx, NV);
     let p1 = p.p1 as i16;
     for k in 0..h {
         let y = if forward { k } else { h - 1 - k };
-        match &mut costs {
-            Costs::Compute => cost_row(ctx, y, pad, unknown, &mut ps.rev, &mut ps.cost),
-            Costs::Store(vol) => {
-                cost_row(ctx, y, pad, unknown, &mut ps.rev, &mut ps.cost);
-                let dst = &mut vol[y * w * nd..(y + 1) * w * nd];
-                for (d, c) in dst.chunks_exact_mut(nd).zip(ps.cost.chunks_exact(dp)) {
-                    for (o, &v) in d.iter_mut().zip(c) {
-                        *o = v as u8;
-                    }
-                }
-            }
-            Costs::Load(vol) => {
-                let src = &vol[y * w * nd..(y + 1) * w * nd];
-                for (c, d) in ps.cost.chunks_exact_mut(dp).zip(src.chunks_exact(nd)) {
-                    for (o, &v) in c.iter_mut().zip(d) {
-                        *o = i16::from(v);
-                    }
-                }
-            }
-        }
+        ps.row_costs(ctx, y, &mut costs);
         // The path along the row starts from zero at the border (L = C).
         ps.row_path.clear();
         push_paths(&mut ps.row_path, 1, dp);
@@ -414,7 +307,7 @@ fn pass_n<const NV: usize, K: Kernel>(
                     let hi = *lanes(&ps.paths, base + at + LANES);
                     let c = lanes(&ps.cost, x * dp + at);
                     let acc = lanes_mut(acc_row, at);
-                    let l = K::step(c, &lo, &a, &hi, min_prev[v], p1, jump[v], &mut mn, acc);
+                    let l = step(c, &lo, &a, &hi, min_prev[v], p1, jump[v], &mut mn, acc);
                     (lo, a) = (a, hi);
                     if delayed {
                         // Slot x + 1 is the next pixel's predecessor: the previous pixel's L
@@ -445,7 +338,7 @@ fn pass_n<const NV: usize, K: Kernel>(
                 let hi = *lanes(&ps.row_path, GUARD + at + LANES);
                 let c = lanes(&ps.cost, x * dp + at);
                 let acc = lanes_mut(acc_row, at);
-                let l = K::step(c, &lo, &a, &hi, row_min, p1, jump_h, &mut mn, acc);
+                let l = step(c, &lo, &a, &hi, row_min, p1, jump_h, &mut mn, acc);
                 (lo, a) = (a, hi);
                 *lanes_mut(&mut ps.row_path, GUARD + at) = l;
             }

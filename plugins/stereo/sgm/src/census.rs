@@ -23,7 +23,7 @@ pub fn census(img: &[u8], w: usize, h: usize, cw: usize, ch: usize, out: &mut Ve
 
 fn census_row(pad: &[u8], pw: usize, rx: usize, ry: usize, y: usize, row: &mut [u64]) {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
+    if crate::simd::avx2() {
         // SAFETY: the CPU supports AVX2 (checked just above).
         unsafe { census_row_avx2(pad, pw, rx, ry, y, row) };
         return;

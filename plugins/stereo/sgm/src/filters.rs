@@ -17,20 +17,21 @@ pub(crate) fn finish_with(
     p: &SgmParams,
     speckle: &mut SpeckleScratch,
 ) {
-    if p.lr_check {
-        for (i, d) in disp.iter_mut().enumerate() {
-            if !d.is_finite() {
-                continue;
-            }
-            let (y, x) = (i / w, i % w);
-            let xr = (x as f32 - *d).round();
-            if xr < 0.0 || xr as usize >= w {
-                *d = f32::NAN;
-                continue;
-            }
-            let dr = right[y * w + xr as usize];
-            if !(dr.is_finite() && (dr - *d).abs() <= p.lr_max_diff) {
-                *d = f32::NAN;
+    if p.lr_check && w > 0 {
+        for (row, rrow) in disp.chunks_exact_mut(w).zip(right.chunks_exact(w)) {
+            for (x, d) in row.iter_mut().enumerate() {
+                if !d.is_finite() {
+                    continue;
+                }
+                let xr = (x as f32 - *d).round();
+                if xr < 0.0 || xr as usize >= w {
+                    *d = f32::NAN;
+                    continue;
+                }
+                let dr = rrow[xr as usize];
+                if !(dr.is_finite() && (dr - *d).abs() <= p.lr_max_diff) {
+                    *d = f32::NAN;
+                }
             }
         }
     }
@@ -49,9 +50,43 @@ pub(crate) fn finish_with(
     }
 }
 
+/// The optimal 9-input sorting network (25 compare-exchanges, depth 7): calls `$exch!(i, j)`
+/// for each exchange in order (literal indices, so the lanes stay in registers).
+macro_rules! sort9 {
+    ($exch:ident) => {
+        $exch!(0, 3);
+        $exch!(1, 7);
+        $exch!(2, 5);
+        $exch!(4, 8);
+        $exch!(0, 7);
+        $exch!(2, 4);
+        $exch!(3, 8);
+        $exch!(5, 6);
+        $exch!(0, 2);
+        $exch!(1, 3);
+        $exch!(4, 5);
+        $exch!(7, 8);
+        $exch!(1, 4);
+        $exch!(3, 6);
+        $exch!(5, 7);
+        $exch!(0, 1);
+        $exch!(2, 4);
+        $exch!(3, 5);
+        $exch!(6, 8);
+        $exch!(2, 3);
+        $exch!(4, 5);
+        $exch!(6, 7);
+        $exch!(1, 2);
+        $exch!(3, 4);
+        $exch!(5, 6);
+    };
+}
+
 /// 3x3 median over the valid neighbours of each valid pixel (with an even count, the upper of
-/// the two middle values). Where all nine are valid (almost everywhere) it is Paeth's
-/// 19-exchange median-of-9 network; elsewhere a sort of the valid ones.
+/// the two middle values). Inside the image, 8 pixels at a time: the nine neighbours with the
+/// invalid ones replaced by +inf go through a 25-exchange sorting network (min/max lanes), so
+/// the n valid values lead in order and the median is the one at n / 2. The borders (and the
+/// tail of each row) take the sort of the valid values.
 pub fn median3(d: &[f32], w: usize, h: usize) -> Vec<f32> {
     let mut out = vec![f32::NAN; w * h];
     if w == 0 {
@@ -64,71 +99,133 @@ pub fn median3(d: &[f32], w: usize, h: usize) -> Vec<f32> {
             }
             return;
         }
-        let (a, b, c) = (
-            &d[(y - 1) * w..y * w],
-            &d[y * w..(y + 1) * w],
-            &d[(y + 1) * w..(y + 2) * w],
-        );
-        row[0] = median_at(d, w, h, 0, y);
-        row[w - 1] = median_at(d, w, h, w - 1, y);
-        for x in 1..w - 1 {
-            if !b[x].is_finite() {
-                continue;
-            }
-            let v = [
-                a[x - 1],
-                a[x],
-                a[x + 1],
-                b[x - 1],
-                b[x],
-                b[x + 1],
-                c[x - 1],
-                c[x],
-                c[x + 1],
-            ];
-            row[x] = if v.iter().all(|q| q.is_finite()) {
-                median9(v)
-            } else {
-                median_at(d, w, h, x, y)
-            };
-        }
+        median_row(d, w, h, y, row);
     });
     out
 }
 
-/// The median of nine finite values by Paeth's exchange network (19 compare-exchanges).
+fn median_row(d: &[f32], w: usize, h: usize, y: usize, row: &mut [f32]) {
+    #[cfg(target_arch = "x86_64")]
+    if crate::simd::avx2() {
+        // SAFETY: the CPU supports AVX2 (checked just above).
+        unsafe { median_row_avx2(d, w, h, y, row) };
+        return;
+    }
+    median_row_generic(d, w, h, y, row);
+}
+
+/// [`median_row_generic`] in AVX2 registers (the same network, the same selection).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn median_row_avx2(d: &[f32], w: usize, h: usize, y: usize, row: &mut [f32]) {
+    use std::arch::x86_64::*;
+    let rows = [
+        &d[(y - 1) * w..y * w],
+        &d[y * w..(y + 1) * w],
+        &d[(y + 1) * w..(y + 2) * w],
+    ];
+    assert!(row.len() == w);
+    row[0] = median_at(d, w, h, 0, y);
+    let inf = _mm256_set1_ps(f32::INFINITY);
+    let abs = _mm256_castsi256_ps(_mm256_set1_epi32(i32::MAX));
+    let mut x0 = 1;
+    while x0 + MB < w {
+        let mut v = [inf; 9];
+        let mut n = _mm256_setzero_si256();
+        let mut centre_ok = inf;
+        for (r, src) in rows.iter().enumerate() {
+            for dx in 0..3 {
+                // SAFETY: x0 + dx - 1 + MB <= x0 + MB + 1 <= w = src.len().
+                let q = unsafe { _mm256_loadu_ps(src.as_ptr().add(x0 + dx - 1)) };
+                let ok = _mm256_cmp_ps::<_CMP_LT_OQ>(_mm256_and_ps(q, abs), inf);
+                v[r * 3 + dx] = _mm256_blendv_ps(inf, q, ok);
+                n = _mm256_sub_epi32(n, _mm256_castps_si256(ok));
+                if r == 1 && dx == 1 {
+                    centre_ok = ok;
+                }
+            }
+        }
+        macro_rules! exch {
+            ($i:literal, $j:literal) => {{
+                let (p, q) = (v[$i], v[$j]);
+                v[$i] = _mm256_min_ps(p, q);
+                v[$j] = _mm256_max_ps(p, q);
+            }};
+        }
+        sort9!(exch);
+        let k = _mm256_srli_epi32::<1>(n);
+        let mut m = v[0];
+        for (i, vi) in v.iter().enumerate().take(5).skip(1) {
+            let pick = _mm256_castsi256_ps(_mm256_cmpeq_epi32(k, _mm256_set1_epi32(i as i32)));
+            m = _mm256_blendv_ps(m, *vi, pick);
+        }
+        let m = _mm256_blendv_ps(_mm256_set1_ps(f32::NAN), m, centre_ok);
+        // SAFETY: x0 + MB < w = row.len().
+        unsafe { _mm256_storeu_ps(row.as_mut_ptr().add(x0), m) };
+        x0 += MB;
+    }
+    for (x, o) in row.iter_mut().enumerate().skip(x0) {
+        *o = median_at(d, w, h, x, y);
+    }
+}
+
+/// Pixels per step of the vectorised median.
+const MB: usize = 8;
+
+/// One interior row (0 < y < h - 1, w >= 3) of [`median3`].
 #[inline(always)]
-fn median9(mut p: [f32; 9]) -> f32 {
-    #[inline(always)]
-    fn sort2(p: &mut [f32; 9], i: usize, j: usize) {
-        let (a, b) = (p[i], p[j]);
-        p[i] = if a > b { b } else { a };
-        p[j] = if a > b { a } else { b };
+fn median_row_generic(d: &[f32], w: usize, h: usize, y: usize, row: &mut [f32]) {
+    let (a, b, c) = (
+        &d[(y - 1) * w..y * w],
+        &d[y * w..(y + 1) * w],
+        &d[(y + 1) * w..(y + 2) * w],
+    );
+    row[0] = median_at(d, w, h, 0, y);
+    let mut x0 = 1;
+    while x0 + MB < w {
+        // v[k][l]: neighbour k (row by row) of pixel x0 + l, +inf when invalid.
+        let mut v = [[0.0f32; MB]; 9];
+        let mut n = [0u32; MB];
+        for (r, src) in [a, b, c].into_iter().enumerate() {
+            for dx in 0..3 {
+                let s: &[f32; MB] = src[x0 + dx - 1..x0 + dx - 1 + MB]
+                    .try_into()
+                    .unwrap_or_else(|_| unreachable!("a slice of MB elements"));
+                for l in 0..MB {
+                    let ok = s[l].abs() < f32::INFINITY;
+                    v[r * 3 + dx][l] = if ok { s[l] } else { f32::INFINITY };
+                    n[l] += u32::from(ok);
+                }
+            }
+        }
+        // By value, so the lanes stay in registers (v[i] and v[j] cannot alias).
+        #[inline(always)]
+        fn cx(p: [f32; MB], q: [f32; MB]) -> ([f32; MB], [f32; MB]) {
+            (
+                std::array::from_fn(|l| if p[l] < q[l] { p[l] } else { q[l] }),
+                std::array::from_fn(|l| if p[l] < q[l] { q[l] } else { p[l] }),
+            )
+        }
+        macro_rules! exch {
+            ($i:literal, $j:literal) => {
+                (v[$i], v[$j]) = cx(v[$i], v[$j])
+            };
+        }
+        sort9!(exch);
+        for l in 0..MB {
+            let k = n[l] / 2;
+            let mut m = v[0][l];
+            for (i, vi) in v.iter().enumerate().take(5).skip(1) {
+                m = if k == i as u32 { vi[l] } else { m };
+            }
+            let centre_ok = b[x0 + l].abs() < f32::INFINITY;
+            row[x0 + l] = if centre_ok { m } else { f32::NAN };
+        }
+        x0 += MB;
     }
-    for (i, j) in [
-        (1, 2),
-        (4, 5),
-        (7, 8),
-        (0, 1),
-        (3, 4),
-        (6, 7),
-        (1, 2),
-        (4, 5),
-        (7, 8),
-        (0, 3),
-        (5, 8),
-        (4, 7),
-        (3, 6),
-        (1, 4),
-        (2, 5),
-        (4, 7),
-        (4, 2),
-        (6, 4),
-        (4, 2),
-    ] {
-        sort2(&mut p, i, j);
+    for (x, o) in row.iter_mut().enumerate().skip(x0) {
+        *o = median_at(d, w, h, x, y);
     }
-    p[4]
 }
 
 /// The median of the valid pixels of the 3x3 window at (x, y) (NaN when the centre is invalid).
@@ -252,6 +349,23 @@ mod tests {
     }
 
     #[test]
+    fn the_nine_input_network_sorts_every_zero_one_input() {
+        // The 0-1 principle: a comparator network that sorts all 2^9 binary inputs sorts all.
+        for bits in 0u32..512 {
+            let mut v: [u8; 9] = std::array::from_fn(|i| ((bits >> i) & 1) as u8);
+            macro_rules! exch {
+                ($i:literal, $j:literal) => {{
+                    let (p, q) = (v[$i], v[$j]);
+                    v[$i] = p.min(q);
+                    v[$j] = p.max(q);
+                }};
+            }
+            sort9!(exch);
+            assert!(v.windows(2).all(|p| p[0] <= p[1]), "{bits:09b} -> {v:?}");
+        }
+    }
+
+    #[test]
     fn the_median_network_and_the_holes_match_the_sorted_definition() {
         let mut seed = 12345u64;
         let mut next = || {
@@ -260,7 +374,16 @@ mod tests {
                 .wrapping_add(1442695040888963407);
             (seed >> 33) as u32
         };
-        for (w, h) in [(1, 1), (2, 5), (3, 3), (17, 9), (64, 31)] {
+        for (w, h) in [
+            (1, 1),
+            (2, 5),
+            (3, 3),
+            (9, 3),
+            (10, 4),
+            (17, 9),
+            (64, 31),
+            (203, 40),
+        ] {
             // Few distinct values (ties), a tenth invalid (NaN and infinities).
             let d: Vec<f32> = (0..w * h)
                 .map(|_| match next() % 20 {
@@ -269,13 +392,18 @@ mod tests {
                     k => (k % 7) as f32 * 0.5 + (next() % 3) as f32 * 0.25,
                 })
                 .collect();
-            let got = median3(&d, w, h);
             let want = median_reference(&d, w, h);
-            for (i, (g, r)) in got.iter().zip(&want).enumerate() {
-                assert!(
-                    g.to_bits() == r.to_bits(),
-                    "{w}x{h} pixel {i}: {g} instead of {r}"
-                );
+            // The AVX2 kernel (where the CPU has it) and the portable one.
+            for portable in [false, true] {
+                crate::simd::force_portable(portable);
+                let got = median3(&d, w, h);
+                crate::simd::force_portable(false);
+                for (i, (g, r)) in got.iter().zip(&want).enumerate() {
+                    assert!(
+                        g.to_bits() == r.to_bits(),
+                        "{w}x{h} pixel {i}: {g} instead of {r} (portable {portable})"
+                    );
+                }
             }
         }
     }

@@ -4,12 +4,15 @@
 #![deny(missing_docs)]
 
 mod aggregate;
+#[cfg(target_arch = "x86_64")]
+mod aggregate_avx2;
 mod census;
 mod filters;
 pub mod gpu;
 pub mod reference;
 mod select;
 pub mod sgm;
+pub mod simd;
 
 use misslam_framework::gpu::GpuContext;
 use misslam_framework::{

@@ -38,7 +38,7 @@ pub(crate) fn select_row(
     rs: &mut RightScratch,
 ) {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
+    if crate::simd::avx2() {
         // SAFETY: the CPU supports AVX2 (checked just above).
         unsafe { select_row_avx2(ctx, y, tot, valid, disp, right, rs) };
         return;
@@ -46,6 +46,22 @@ pub(crate) fn select_row(
     select_row_generic(ctx, y, tot, valid, disp, right, rs);
 }
 
+/// Minimum of the 16 lanes (all in 0..=i16::MAX, so the unsigned `minpos` is the signed min).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+fn hmin_avx2(v: std::arch::x86_64::__m256i) -> i16 {
+    use std::arch::x86_64::*;
+    let m = _mm_min_epi16(_mm256_castsi256_si128(v), _mm256_extracti128_si256::<1>(v));
+    _mm_cvtsi128_si32(_mm_minpos_epu16(m)) as i16
+}
+
+/// [`select_row_generic`] in AVX2 registers. Left: the minimum of the D' sums, its first lane
+/// by a compare mask, the second best with the lanes at d +- 1 of it raised to FAR. Right: a
+/// window of D' lanes, lane d holding the best sum so far (and its d) of right pixel
+/// x - dmin - d; each left pixel shifts the window up one lane (chunks from the top, so every
+/// load and store is aligned to the previous pixel's) and offers its sums; lane nd - 1 is then
+/// complete.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 fn select_row_avx2(
@@ -57,7 +73,123 @@ fn select_row_avx2(
     right: &mut [f32],
     rs: &mut RightScratch,
 ) {
-    select_row_generic(ctx, y, tot, valid, disp, right, rs);
+    use std::arch::x86_64::*;
+    let (w, nd, dp, p) = (ctx.w, ctx.nd, ctx.dp, ctx.p);
+    let chunks = dp / LANES;
+    assert!(tot.len() >= w * dp && disp.len() >= w && right.len() >= w);
+    let dmin = p.min_disparity as f32;
+    let lane_ids = _mm256_setr_epi16(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    let far = _mm256_set1_epi16(FAR);
+    let load = |at: usize| -> __m256i {
+        // SAFETY: at + LANES <= tot.len() (at < w * dp, a multiple of LANES; asserted above).
+        unsafe { _mm256_loadu_si256(tot.as_ptr().add(at).cast()) }
+    };
+    for (x, out) in disp.iter_mut().enumerate().take(w) {
+        if valid.is_some_and(|m| m[y * w + x] == 0) {
+            *out = f32::NAN;
+            continue;
+        }
+        let cell = x * dp;
+        let mut m = load(cell);
+        for q in 1..chunks {
+            m = _mm256_min_epi16(m, load(cell + q * LANES));
+        }
+        let best = hmin_avx2(m);
+        let bv = _mm256_set1_epi16(best);
+        let mut bd = 0usize;
+        for q in 0..chunks {
+            let eq = _mm256_movemask_epi8(_mm256_cmpeq_epi16(load(cell + q * LANES), bv));
+            if eq != 0 {
+                bd = q * LANES + eq.trailing_zeros() as usize / 2;
+                break;
+            }
+        }
+        let bdv = _mm256_set1_epi16(bd as i16);
+        let two = _mm256_set1_epi16(2);
+        let mut sec = far;
+        for q in 0..chunks {
+            let d = _mm256_add_epi16(lane_ids, _mm256_set1_epi16((q * LANES) as i16));
+            let near = _mm256_cmpgt_epi16(two, _mm256_abs_epi16(_mm256_sub_epi16(d, bdv)));
+            let c = _mm256_max_epi16(load(cell + q * LANES), _mm256_and_si256(near, far));
+            sec = _mm256_min_epi16(sec, c);
+        }
+        let second = hmin_avx2(sec);
+        let second = if second == FAR {
+            u64::from(u16::MAX)
+        } else {
+            second as u64
+        };
+        if (best as u64) * (100 + p.uniqueness_pct as u64) > second * 100 {
+            *out = f32::NAN;
+            continue;
+        }
+        let mut d = bd as f32;
+        if p.subpixel && bd > 0 && bd + 1 < nd {
+            let c = &tot[cell..cell + dp];
+            let (a, b, c) = (c[bd - 1] as f32, c[bd] as f32, c[bd + 1] as f32);
+            let den = a - 2.0 * b + c;
+            if den > 0.0 {
+                d += 0.5 * (a - c) / den;
+            }
+        }
+        *out = d + dmin;
+    }
+    // Right disparities. Chunk q of the window at rs.best/rs.arg[q * LANES..]: lane d of right
+    // pixel xr = x - dmin - d. Guard lanes below d = 0 hold FAR.
+    right[..w].fill(f32::NAN);
+    rs.best.clear();
+    rs.best.resize(dp, FAR);
+    rs.arg.clear();
+    rs.arg.resize(dp, -1);
+    let (bp, ap) = (rs.best.as_mut_ptr(), rs.arg.as_mut_ptr());
+    let dmin_i = p.min_disparity as isize;
+    let done = nd - 1;
+    for x in 0..w {
+        let cell = x * dp;
+        for q in (0..chunks).rev() {
+            // SAFETY: q * LANES + LANES <= dp = rs.best.len() = rs.arg.len().
+            let (b, a) = unsafe {
+                (
+                    _mm256_loadu_si256(bp.add(q * LANES).cast()),
+                    _mm256_loadu_si256(ap.add(q * LANES).cast()),
+                )
+            };
+            let (b_lo, a_lo) = if q == 0 {
+                (far, _mm256_set1_epi16(-1))
+            } else {
+                // SAFETY: as above, chunk q - 1.
+                unsafe {
+                    (
+                        _mm256_loadu_si256(bp.add((q - 1) * LANES).cast()),
+                        _mm256_loadu_si256(ap.add((q - 1) * LANES).cast()),
+                    )
+                }
+            };
+            // One lane up: lane l gets lane l - 1 (lane 0 the top lane of the chunk below).
+            let b = _mm256_alignr_epi8::<14>(b, _mm256_permute2x128_si256::<0x21>(b_lo, b));
+            let a = _mm256_alignr_epi8::<14>(a, _mm256_permute2x128_si256::<0x21>(a_lo, a));
+            let c = load(cell + q * LANES);
+            let d = _mm256_add_epi16(lane_ids, _mm256_set1_epi16((q * LANES) as i16));
+            let better = _mm256_cmpgt_epi16(b, c);
+            // SAFETY: as above.
+            unsafe {
+                _mm256_storeu_si256(bp.add(q * LANES).cast(), _mm256_min_epi16(b, c));
+                _mm256_storeu_si256(ap.add(q * LANES).cast(), _mm256_blendv_epi8(a, d, better));
+            }
+        }
+        let xr = x as isize - dmin_i - done as isize;
+        if xr >= 0 && (xr as usize) < w {
+            let d = rs.arg[done];
+            right[xr as usize] = if d < 0 { f32::NAN } else { d as f32 + dmin };
+        }
+    }
+    // The lanes below nd - 1 are complete too once the row ends.
+    for (d, &a) in rs.arg.iter().enumerate().take(done) {
+        let xr = (w - 1) as isize - dmin_i - d as isize;
+        if xr >= 0 && (xr as usize) < w {
+            right[xr as usize] = if a < 0 { f32::NAN } else { a as f32 + dmin };
+        }
+    }
 }
 
 #[inline(always)]

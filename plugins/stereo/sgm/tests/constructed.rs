@@ -264,15 +264,24 @@ fn the_fast_path_gives_exactly_the_reference_output() {
             want.iter().filter(|v| v.is_finite()).count() > w * h / 3,
             "case {i} is dense enough to mean something"
         );
-        for threads in [1, 2] {
-            let got = on_threads(threads, || {
-                let mut s = Scratch::default();
-                // Twice with one scratch: buffers reused across frames must not leak state.
-                sgm(&right, &left, w, h, None, p, &mut s).unwrap();
-                sgm(&left, &right, w, h, m, p, &mut s).unwrap()
-            });
-            assert_eq!(same(&got, &want), 0, "case {i}, {threads} threads");
+        // The AVX2 kernels (where the CPU has them) and the portable ones.
+        for portable in [false, true] {
+            misslam_depth_sgm::simd::force_portable(portable);
+            for threads in [1, 2] {
+                let got = on_threads(threads, || {
+                    let mut s = Scratch::default();
+                    // Twice with one scratch: buffers reused across frames must not leak state.
+                    sgm(&right, &left, w, h, None, p, &mut s).unwrap();
+                    sgm(&left, &right, w, h, m, p, &mut s).unwrap()
+                });
+                assert_eq!(
+                    same(&got, &want),
+                    0,
+                    "case {i}, {threads} threads, portable {portable}"
+                );
+            }
         }
+        misslam_depth_sgm::simd::force_portable(false);
     }
 }
 
