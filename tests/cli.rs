@@ -37,6 +37,38 @@ fn validate_accepts_and_rejects_with_one_located_line() {
         "error: tests/graphs/invalid/type_mismatch.toml:8:20: node `files`: input `depth` takes depth, but `src.left` is image"
     );
 
+    // Two sinks writing one folder (tests/graph_validation.rs pins the file's own clash): a
+    // `--set` that makes the clash is named; one that separates them passes.
+    let clash = misslam()
+        .args([
+            "validate",
+            "tests/graphs/invalid/two_sinks_one_dir.toml",
+            "--set",
+            "b.dir=files",
+        ])
+        .output()
+        .unwrap();
+    assert_eq!(clash.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&clash.stderr);
+    assert!(
+        err.starts_with("error: tests/graphs/invalid/two_sinks_one_dir.toml: --set b.dir=files: node `b` (sink.files): `dir` = \"files\" is the folder node `a` already writes"),
+        "{err}"
+    );
+    let apart = misslam()
+        .args([
+            "validate",
+            "tests/graphs/invalid/two_sinks_one_dir.toml",
+            "--set",
+            "b.dir=files/b",
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        apart.status.success(),
+        "{}",
+        String::from_utf8_lossy(&apart.stderr)
+    );
+
     let bad_set = misslam()
         .args(["validate", "graphs/inspect.toml", "--set", "src.step=zero"])
         .output()

@@ -6,7 +6,7 @@
 
 use std::collections::BTreeMap;
 use std::marker::PhantomData;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use serde::de::DeserializeOwned;
@@ -128,7 +128,16 @@ pub trait Plugin: Send + Sync {
     fn check_params(&self, params: &toml::Table) -> Result<(), BuildError>;
     /// Builds a node from parameters.
     fn build(&self, params: &toml::Table, ctx: &BuildContext) -> Result<Box<dyn Node>, BuildError>;
+    /// Folders under the run's output folder that a node with these (checked) parameters
+    /// writes, each with the parameter that names it. Graph loading refuses two nodes that
+    /// claim the same folder (they would overwrite each other's files).
+    fn output_dirs(&self, _params: &toml::Table) -> Vec<(String, PathBuf)> {
+        Vec::new()
+    }
 }
+
+/// The folders a typed plugin's node writes, from its parameters.
+type OutputDirsFn<P> = dyn Fn(&P) -> Vec<(String, PathBuf)> + Send + Sync;
 
 /// Parses a typed parameter struct from a TOML table, naming the path of whatever is wrong.
 pub fn parse_params<P: DeserializeOwned>(params: &toml::Table) -> Result<P, BuildError> {
@@ -153,6 +162,7 @@ pub struct TypedPlugin<P> {
     info: PluginInfo,
     known: Option<Vec<String>>,
     build: Box<BuildFn<P>>,
+    output_dirs: Option<Box<OutputDirsFn<P>>>,
     _p: PhantomData<fn() -> P>,
 }
 
@@ -181,8 +191,19 @@ where
             },
             known,
             build: Box::new(move |p, ctx| build(p, ctx).map(|n| Box::new(n) as Box<dyn Node>)),
+            output_dirs: None,
             _p: PhantomData,
         }
+    }
+
+    /// Declares the folders (under the run's output folder) a node writes, each with the
+    /// parameter naming it (see [`Plugin::output_dirs`]).
+    pub fn with_output_dirs(
+        mut self,
+        f: impl Fn(&P) -> Vec<(String, PathBuf)> + Send + Sync + 'static,
+    ) -> Self {
+        self.output_dirs = Some(Box::new(f));
+        self
     }
 }
 
@@ -213,6 +234,13 @@ where
         self.check_params(params)?;
         let p = parse_params::<P>(params)?;
         (self.build)(p, ctx)
+    }
+
+    fn output_dirs(&self, params: &toml::Table) -> Vec<(String, PathBuf)> {
+        match (&self.output_dirs, parse_params::<P>(params)) {
+            (Some(f), Ok(p)) => f(&p),
+            _ => Vec::new(),
+        }
     }
 }
 

@@ -251,6 +251,8 @@ pub fn parse(
     }
     let mut seen: HashMap<String, Range<usize>> = HashMap::new();
     let mut pending: Vec<Pending> = Vec::new();
+    // Output folders claimed so far (see `Plugin::output_dirs`), with the claiming node.
+    let mut claimed: HashMap<PathBuf, String> = HashMap::new();
     for node in doc.node {
         let node_span = node.span();
         let node = node.into_inner();
@@ -360,6 +362,27 @@ pub fn parse(
                 ),
             }
         })?;
+
+        // Two nodes writing one folder would overwrite each other's files.
+        for (key, dir) in plugin.output_dirs(&params) {
+            let norm: PathBuf = dir
+                .components()
+                .filter(|c| !matches!(c, std::path::Component::CurDir))
+                .collect();
+            if let Some(other) = claimed.get(&norm) {
+                let msg = format!(
+                    "node `{id}` ({plugin_id}): `{key}` = \"{}\" is the folder node `{other}` \
+                     already writes (the files of one would overwrite the other's); give each \
+                     its own `{key}`",
+                    dir.display()
+                );
+                return Err(match overridden.get(&key) {
+                    Some(arg) => GraphError::at_override(file, arg, msg),
+                    None => at(key_spans.get(&key).cloned().unwrap_or(node_span), msg),
+                });
+            }
+            claimed.insert(norm, id.clone());
+        }
 
         let inputs_span = node.inputs.as_ref().map_or(node.id.span(), |i| i.span());
         let inputs = node

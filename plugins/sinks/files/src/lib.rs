@@ -312,7 +312,8 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
                 last_geometry: vec![None; n],
             })
         },
-    ))
+    )
+    .with_output_dirs(|p: &Params| vec![("dir".to_owned(), p.dir.clone())]))
 }
 
 #[cfg(test)]
