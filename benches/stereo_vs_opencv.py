@@ -1,6 +1,7 @@
 #!/usr/bin/env python3
 """SGM and ELAS against OpenCV StereoSGBM on the Middlebury motorcycle pair that scikit-image
-ships, in the same run, on 1 and 2 threads.
+ships, and SGM on the ColonSyn sequences of ../shared/data (GT depth), in the same run, on 1 and
+2 threads.
 
     python3 -m venv .venv-bench && .venv-bench/bin/pip install opencv-python-headless scikit-image
     .venv-bench/bin/python benches/stereo_vs_opencv.py [--misslam target/debug/misslam]
@@ -10,7 +11,7 @@ valid-only), density, and milliseconds per pair (median of runs), for 741x500 an
 Occluded pixels are derived from the GT: a left pixel is occluded when another pixel of its row
 with a disparity larger by more than 1 px lands on the same right-image column.
 """
-import argparse, json, os, subprocess, tempfile, time
+import argparse, json, os, subprocess, tempfile, time, tomllib
 
 import cv2
 import numpy as np
@@ -56,6 +57,59 @@ def scores(est, gt, mask=None):
     return out
 
 
+def colonsyn_rows(args):
+    """ColonSyn (synthetic colon, 640x480, GT depth): every pair of each sequence, GT disparity
+    fx * B / Z from the depth the project decodes (`graphs/colonsyn_gt.toml`, `sink.files`), 256
+    disparities (the GT reaches about 300 px at the closest wall; beyond 255 a pixel counts as
+    bad for every method). Scores pooled over all pairs; ms is the median over pairs."""
+    rows = []
+    for seq in ["colonsyn30", "colonsyn31"]:
+        data = os.path.join(args.data, seq)
+        if not os.path.isdir(data):
+            print(f"skipping {seq}: {data} is absent")
+            continue
+        with open(f"{data}/calib.toml", "rb") as f:
+            calib = tomllib.load(f)
+        fx, base = calib["fx"], calib["baseline_mm"]
+        nd = 256
+        with tempfile.TemporaryDirectory() as tmp:
+            subprocess.run([args.misslam, "run", "graphs/colonsyn_gt.toml", "--quiet", "--out", f"{tmp}/gt",
+                            "--set", f"src.path={data}"], check=True, stderr=subprocess.DEVNULL)
+            names = sorted(os.listdir(f"{data}/left"), key=lambda n: int(os.path.splitext(n)[0]))
+            gts = []
+            for k in range(len(names)):
+                z = read_pfm(f"{tmp}/gt/files/depth/{k:06d}.pfm")
+                g = np.where(np.isfinite(z) & (z > 0), fx * base / np.where(z > 0, z, 1), np.nan)
+                gts.append(g)
+            masks = [non_occluded(g) for g in gts]
+            gray = [(cv2.imread(f"{data}/left/{n}", cv2.IMREAD_GRAYSCALE), cv2.imread(f"{data}/right/{n}", cv2.IMREAD_GRAYSCALE)) for n in names]
+            for threads in [int(t) for t in args.threads.split(",")]:
+                cv2.setNumThreads(threads)
+                for name, mode in [("opencv SGBM_HH (8 dirs)", cv2.STEREO_SGBM_MODE_HH), ("opencv SGBM (5 dirs)", cv2.STEREO_SGBM_MODE_SGBM)]:
+                    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=nd, blockSize=5, P1=8 * 25, P2=32 * 25,
+                                                 uniquenessRatio=5, speckleWindowSize=100, speckleRange=2, disp12MaxDiff=1, mode=mode)
+                    times, ests = [], []
+                    for gl, gr in gray:
+                        t = time.perf_counter()
+                        d = sgbm.compute(gl, gr).astype(np.float32) / 16.0
+                        times.append(1e3 * (time.perf_counter() - t))
+                        d[d < 0] = np.nan
+                        ests.append(d)
+                    rows.append(dict(method=name, size=seq, threads=threads, ms=float(np.median(times)),
+                                     **scores(np.stack(ests), np.stack(gts), np.stack(masks))))
+                out = f"{tmp}/sgm{threads}"
+                subprocess.run([args.misslam, "run", "graphs/depth_sgm.toml", "--quiet", "--out", out,
+                                "--set", f"src.path={data}", "--set", "src.mask_border=false",
+                                "--set", "graph.parallel=false", "--set", f"depth.max_disparity={nd}"],
+                               check=True, env=dict(os.environ, RAYON_NUM_THREADS=str(threads)), stderr=subprocess.DEVNULL)
+                m = json.load(open(f"{out}/metrics.json"))
+                ests = [read_pfm(f"{out}/files/disparity/{k:06d}.pfm") for k in range(len(names))]
+                rows.append(dict(method="misslam depth.sgm (8 paths, census 9x7)", size=seq, threads=threads,
+                                 ms=m["timing_ms"]["depth"]["median_ms"],
+                                 **scores(np.stack(ests), np.stack(gts), np.stack(masks))))
+    return rows
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--misslam", default="target/debug/misslam")
@@ -63,6 +117,8 @@ def main():
     ap.add_argument("--json", help="also write the rows here")
     ap.add_argument("--threads", default="1,2", help="thread counts to run, e.g. 1 or 1,2")
     ap.add_argument("--sgm-only", action="store_true", help="skip the ELAS rows")
+    ap.add_argument("--data", default="../shared/data", help="folder holding colonsyn30 and colonsyn31")
+    ap.add_argument("--no-colonsyn", action="store_true", help="skip the ColonSyn rows")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     left, right, gt = skimage.data.stereo_motorcycle()
@@ -121,10 +177,12 @@ def main():
                     m = json.load(open(f"{out}/metrics.json"))
                     d = read_pfm(f"{out}/files/disparity/000000.pfm")
                     rows.append(dict(method=name, size=label, threads=threads, ms=m["timing_ms"]["depth"]["median_ms"], **scores(d, g, mask)))
+    if not args.no_colonsyn:
+        rows += colonsyn_rows(args)
     print("non-occluded GT pixels; bad-N: error > N px with invalid pixels counted bad; 'v': over valid pixels only")
-    print(f"{'method':42s} {'size':>8s} {'thr':>3s} {'ms':>8s} {'bad1 %':>7s} {'bad2 %':>7s} {'bad1v %':>8s} {'bad2v %':>8s} {'dens %':>7s}")
+    print(f"{'method':42s} {'size':>10s} {'thr':>3s} {'ms':>8s} {'bad1 %':>7s} {'bad2 %':>7s} {'bad1v %':>8s} {'bad2v %':>8s} {'dens %':>7s}")
     for r in rows:
-        print(f"{r['method']:42s} {r['size']:>8s} {r['threads']:3d} {r['ms']:8.1f} {r['bad1_pct']:7.2f} {r['bad2_pct']:7.2f} {r['bad1_valid_pct']:8.2f} {r['bad2_valid_pct']:8.2f} {r['density_pct']:7.1f}")
+        print(f"{r['method']:42s} {r['size']:>10s} {r['threads']:3d} {r['ms']:8.1f} {r['bad1_pct']:7.2f} {r['bad2_pct']:7.2f} {r['bad1_valid_pct']:8.2f} {r['bad2_valid_pct']:8.2f} {r['density_pct']:7.1f}")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(rows, f, indent=2)
