@@ -20,12 +20,39 @@ pub fn data_set(name: &str) -> Option<PathBuf> {
     }
 }
 
-/// A fresh temporary folder for one test.
+/// A fresh temporary folder for one test. The folders stay after the run (to look at), and the
+/// first call of a test binary removes those of test processes that no longer run, so repeated
+/// runs do not fill the disk (each run writes a few hundred MB).
 pub fn tmp_dir(name: &str) -> PathBuf {
+    static SWEEP: std::sync::Once = std::sync::Once::new();
+    SWEEP.call_once(remove_stale_tmp_dirs);
     let d = std::env::temp_dir().join(format!("misslam-test-{}-{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).expect("create temp dir");
     d
+}
+
+/// Removes `misslam-test-<pid>-*` folders whose process is gone (where `/proc` tells).
+fn remove_stale_tmp_dirs() {
+    if !Path::new("/proc/self").exists() {
+        return;
+    }
+    let Ok(entries) = std::fs::read_dir(std::env::temp_dir()) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        let Some(pid) = name
+            .strip_prefix("misslam-test-")
+            .and_then(|r| r.split('-').next())
+            .and_then(|p| p.parse::<u32>().ok())
+        else {
+            continue;
+        };
+        if pid != std::process::id() && !Path::new(&format!("/proc/{pid}")).exists() {
+            let _ = std::fs::remove_dir_all(e.path());
+        }
+    }
 }
 
 /// The `rerun` CLI (0.36.3, from `pip install rerun-sdk==0.36.3`): `MISSLAM_RERUN_BIN`, else `rerun`
