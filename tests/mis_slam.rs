@@ -48,6 +48,12 @@ fn mis_slam_reconstructs_the_beating_heart_within_the_targets() {
         assert_eq!(e["tracking.lost_pct"], 0.0);
         assert!(e["fusion.surfels"] > 1000.0);
         assert_eq!(e["fusion.disagreeing_frames"], 0.0);
+        // The ORB keypoints reach the solve as E_corr constraints (about 190 a frame here).
+        let corr = e["fusion.correspondences_per_solve"];
+        assert!(
+            corr > 50.0,
+            "noise {noise}: {corr} correspondences per solve"
+        );
     }
 }
 
@@ -59,10 +65,13 @@ fn fusion_on_a_static_scene_merges_instead_of_duplicating() {
     let graph = std::fs::read_to_string("graphs/mis_slam.toml")
         .unwrap()
         .replace(
-            r#"inputs = { depth = "post.depth", stereo = "src.stereo", pose = "track.pose" }"#,
-            r#"inputs = { depth = "src.depth_gt", stereo = "src.stereo", pose = "src.pose_gt" }"#,
+            r#"inputs = { depth = "post.depth", stereo = "src.stereo", pose = "track.pose", features = "features.features" }"#,
+            r#"inputs = { depth = "src.depth_gt", stereo = "src.stereo", pose = "src.pose_gt", features = "features.features" }"#,
         );
-    assert!(graph.contains("src.depth_gt"));
+    assert!(
+        graph.contains(r#"depth = "src.depth_gt""#),
+        "the fusion inputs moved"
+    );
     let dir = common::tmp_dir("fusion_static");
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("static.toml");
@@ -95,10 +104,13 @@ fn fusion_says_when_the_depth_stops_meeting_the_model() {
     let graph = std::fs::read_to_string("graphs/mis_slam.toml")
         .unwrap()
         .replace(
-            r#"inputs = { depth = "post.depth", stereo = "src.stereo", pose = "track.pose" }"#,
+            r#"inputs = { depth = "post.depth", stereo = "src.stereo", pose = "track.pose", features = "features.features" }"#,
             r#"inputs = { depth = "src.depth_gt", stereo = "src.stereo" }"#,
         );
-    assert!(graph.contains("src.depth_gt"));
+    assert!(
+        graph.contains(r#"depth = "src.depth_gt""#),
+        "the fusion inputs moved"
+    );
     let dir = common::tmp_dir("fusion_disagree");
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("jumping.toml");

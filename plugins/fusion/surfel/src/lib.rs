@@ -15,8 +15,13 @@
 //! 4. remove unstable surfels (weight below `stable_weight` and unseen for `unstable_frames`);
 //! 5. grow the graph where surfels lie farther than the node spacing from every node.
 //!
+//! With the `features` input connected, keypoints matched frame to frame add E_corr constraints
+//! to the solve (see [`corr`]).
+//!
 //! Outputs the live model (world frame), the graph, the refined pose and the frame's figures.
 #![deny(missing_docs)]
+
+pub mod corr;
 
 use misslam_deformation_ed::decoupled::DecoupledParams;
 use misslam_deformation_ed::engine::Engine;
@@ -28,12 +33,13 @@ use misslam_deformation_ed::problem::{Intrinsics, ModelPoints, Problem, Scan, So
 use misslam_framework::geometry::{arr3, vec3};
 use misslam_framework::nalgebra::{Isometry3, Matrix3, Point3, Vector3};
 use misslam_framework::{
-    BuildContext, BuildError, DepthMap, Flow, FrameInfo, Image, Inputs, Metrics, Node, NodeContext,
-    NodeError, NodeResult, Outputs, PortSpec, PortType, Pose, Registry, StereoFrame, SurfelModel,
-    TrackingState, TypedPlugin,
+    BuildContext, BuildError, DepthMap, Features, Flow, FrameInfo, Image, Inputs, Metrics, Node,
+    NodeContext, NodeError, NodeResult, Outputs, PortSpec, PortType, Pose, Registry, StereoFrame,
+    SurfelModel, TrackingState, TypedPlugin,
 };
 use rayon::prelude::*;
 
+pub use corr::CorrParams;
 pub use misslam_deformation_ed::engine::SolverKind;
 
 /// Parameters of `fusion.surfel`.
@@ -71,6 +77,8 @@ pub struct Params {
     /// Most graph nodes; beyond it the graph stops growing (logged) and new surfels bind to the
     /// nodes there are.
     pub max_nodes: usize,
+    /// Sparse correspondences (E_corr) from the `features` input.
+    pub correspondences: CorrParams,
 }
 
 impl Default for Params {
@@ -91,6 +99,7 @@ impl Default for Params {
             unstable_frames: 10,
             max_surfels: 400_000,
             max_nodes: 20_000,
+            correspondences: CorrParams::default(),
         }
     }
 }
@@ -136,6 +145,9 @@ impl Params {
         if self.max_nodes == 0 {
             return Err(BuildError::param("max_nodes", "must be at least 1"));
         }
+        self.correspondences
+            .validate()
+            .map_err(|m| BuildError::param("correspondences", m))?;
         Ok(())
     }
 }
@@ -233,6 +245,11 @@ pub struct SurfelNode {
     disagreed: u64,
     /// Whether the previous frame disagreed (one warning per run of such frames).
     disagreeing: bool,
+    /// The previous frame's keypoints anchored to the model (E_corr).
+    anchors: corr::Anchors,
+    /// Solves run, and the correspondences they used (for `metrics.json`).
+    solves: u64,
+    corr_used: u64,
 }
 
 /// A fused frame whose depth mostly did not meet the model: more samples became new surfels
@@ -259,15 +276,18 @@ fn local_inverses(b: &Binding, nm: &[Matrix3<f64>]) -> (Matrix3<f64>, Matrix3<f6
 }
 
 impl SurfelNode {
+    #[allow(clippy::too_many_arguments)]
     fn frame(
         &mut self,
         frame: FrameInfo,
         depth: &DepthMap,
         left: Option<&Image>,
         prior: Option<&Pose>,
+        features: Option<&Features>,
         outputs: &mut Outputs,
         st: &mut Stages,
     ) -> NodeResult<Flow> {
+        let features = features.filter(|_| self.p.correspondences.enabled);
         let (w, h) = (depth.map.width as usize, depth.map.height as usize);
         if depth.map.data.len() != w * h {
             return Err(NodeError::msg(format!(
@@ -354,6 +374,18 @@ impl SurfelNode {
             let lp: Vec<Vector3<f64>> = visible.iter().map(|&i| m.canon[i as usize]).collect();
             let ln: Vec<Vector3<f64>> = visible.iter().map(|&i| m.normals[i as usize]).collect();
             let lb: Vec<Binding> = visible.iter().map(|&i| m.bindings[i as usize]).collect();
+            let corrs = match features {
+                Some(f) => {
+                    corr::correspondences(f, &self.anchors, &pose, &k, &self.p.correspondences)
+                        .map_err(|e| NodeError::msg(format!("frame {}: {e}", frame.index)))?
+                }
+                None => Vec::new(),
+            };
+            metrics
+                .values
+                .insert("fusion.correspondences".into(), corrs.len() as f64);
+            self.solves += 1;
+            self.corr_used += corrs.len() as u64;
             let problem = Problem {
                 model: ModelPoints {
                     points: &lp,
@@ -366,7 +398,7 @@ impl SurfelNode {
                     normals: &self.scan_normals,
                 }),
                 field: None,
-                correspondences: &[],
+                correspondences: &corrs,
                 pose_prior: pose,
             };
             st.lap("select");
@@ -574,6 +606,23 @@ impl SurfelNode {
             &mut live,
             &mut live_n,
         );
+        // This frame's keypoints anchored for the next frame's correspondences (none after a
+        // lost frame: its pose is not the scope's).
+        self.anchors = match features {
+            Some(f) if !lost => {
+                let nm = graph.normal_matrices();
+                corr::anchor(
+                    f,
+                    &pose,
+                    &live,
+                    &m.canon,
+                    &m.bindings,
+                    |s| local_inverses(&m.bindings[s], &nm).0,
+                    self.p.correspondences.anchor_distance_mm,
+                )
+            }
+            _ => corr::Anchors::default(),
+        };
         for (key, v) in [
             ("fusion.surfels", m.len() as f64),
             ("fusion.nodes", graph.len() as f64),
@@ -617,6 +666,10 @@ impl Node for SurfelNode {
             self.graph.as_ref().map_or(0, |g| g.len()) as f64,
         );
         ctx.report_eval("fusion.disagreeing_frames", self.disagreed as f64);
+        ctx.report_eval(
+            "fusion.correspondences_per_solve",
+            self.corr_used as f64 / self.solves.max(1) as f64,
+        );
         Ok(())
     }
 
@@ -630,6 +683,7 @@ impl Node for SurfelNode {
         let depth = inputs.get::<DepthMap>("depth")?;
         let pair = inputs.opt::<StereoFrame>("stereo")?;
         let prior = inputs.opt::<Pose>("pose")?;
+        let features = inputs.opt::<Features>("features")?;
         let left = pair.map(|p| p.left.as_ref());
         let mut st = Stages::start();
         let flow = self.frame(
@@ -637,6 +691,7 @@ impl Node for SurfelNode {
             depth,
             left,
             prior.map(|p| p.as_ref()),
+            features.map(|f| f.as_ref()),
             outputs,
             &mut st,
         );
@@ -661,6 +716,9 @@ pub fn build(p: Params, _: &BuildContext) -> Result<SurfelNode, BuildError> {
         scan_normals: Vec::new(),
         disagreed: 0,
         disagreeing: false,
+        anchors: corr::Anchors::default(),
+        solves: 0,
+        corr_used: 0,
     })
 }
 
@@ -680,6 +738,11 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
                 "pose",
                 PortType::Pose,
                 "world_from_camera from the tracker (prior); a lost frame is not fused",
+            ),
+            PortSpec::optional(
+                "features",
+                PortType::Features,
+                "keypoints with descriptors and camera-frame 3D points (features.orb / features.surf): matched frame to frame into E_corr constraints (`correspondences`)",
             ),
         ],
         vec![

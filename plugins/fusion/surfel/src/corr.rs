@@ -1,0 +1,364 @@
+//! Sparse correspondences for E_corr from the keypoints of consecutive frames (MIS-SLAM hands the
+//! feature matches of its tracker to the ED solve as sparse constraints).
+//!
+//! At the end of a frame every keypoint with a stereo 3D point is *anchored* to the model: its
+//! world position (the frame's final pose) is expressed in the canonical frame through the
+//! closest live surfel within `anchor_distance_mm` (its canonical position plus the offset
+//! mapped back by the warp's local linear part), with that surfel's binding. On the next frame
+//! each anchor is projected into the image through the prior pose and matched by descriptor to
+//! the keypoints within `radius_px` of it (guided matching, ratio test, each keypoint keeping its
+//! nearest anchor); each match asks the warp to carry the anchor onto the keypoint's new 3D point
+//! (camera frame). A match whose 3D point lies farther than `max_jump_mm` from the anchor's live
+//! position (under the prior pose) is dropped as wrong.
+
+use std::collections::HashMap;
+
+use misslam_deformation_ed::graph::Binding;
+use misslam_deformation_ed::problem::Correspondence;
+use misslam_deformation_ed::problem::Intrinsics;
+use misslam_features_matching::guided::{match_guided, GuidedParams, KeypointGrid};
+use misslam_framework::nalgebra::{Isometry3, Matrix3, Point3, Vector3};
+use misslam_framework::{Descriptors, Features};
+
+/// Parameters of the sparse correspondences (with the `features` input connected).
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct CorrParams {
+    /// Use the keypoints as E_corr constraints (weight `solver.weights.corr`).
+    pub enabled: bool,
+    /// A keypoint anchors to the closest live surfel within this distance, mm.
+    pub anchor_distance_mm: f64,
+    /// A match is dropped when its 3D point lies farther than this from the anchor's live
+    /// position (through the prior pose), mm.
+    pub max_jump_mm: f64,
+    /// Search radius around an anchor's projection, pixels.
+    pub radius_px: f32,
+    /// Lowe's ratio between the best and second-best descriptor distance within the radius.
+    pub ratio: f32,
+    /// Largest Hamming distance of binary descriptors (ORB), bits.
+    pub max_distance: f32,
+    /// Largest L2 distance of float descriptors (SURF).
+    pub max_distance_l2: f32,
+}
+
+impl Default for CorrParams {
+    fn default() -> Self {
+        CorrParams {
+            enabled: true,
+            anchor_distance_mm: 2.0,
+            max_jump_mm: 10.0,
+            radius_px: 15.0,
+            ratio: 0.8,
+            max_distance: 64.0,
+            max_distance_l2: 0.4,
+        }
+    }
+}
+
+impl CorrParams {
+    /// Checks the ranges; the message names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        for (name, v) in [
+            ("anchor_distance_mm", self.anchor_distance_mm),
+            ("max_jump_mm", self.max_jump_mm),
+            ("radius_px", self.radius_px as f64),
+            ("max_distance", self.max_distance as f64),
+            ("max_distance_l2", self.max_distance_l2 as f64),
+        ] {
+            if v.is_nan() || v <= 0.0 {
+                return Err(format!("`{name}` must be positive, got {v}"));
+            }
+        }
+        if !(self.ratio > 0.0 && self.ratio <= 1.0) {
+            return Err(format!("`ratio` must lie in (0, 1], got {}", self.ratio));
+        }
+        Ok(())
+    }
+}
+
+/// The previous frame's keypoints, anchored to the model.
+#[derive(Default)]
+pub struct Anchors {
+    descriptors: Option<Descriptors>,
+    canon: Vec<Vector3<f64>>,
+    bindings: Vec<Binding>,
+    live: Vec<Vector3<f64>>,
+}
+
+impl Anchors {
+    /// Number of anchored keypoints.
+    pub fn len(&self) -> usize {
+        self.canon.len()
+    }
+
+    /// True when none is anchored.
+    pub fn is_empty(&self) -> bool {
+        self.canon.is_empty()
+    }
+}
+
+/// Anchors `features` (camera frame, seen at `pose`) to the live model: `live`/`canon`/
+/// `bindings` per surfel, `local_inverse(s)` the warp's A^-1 at surfel `s`.
+#[allow(clippy::too_many_arguments)]
+pub fn anchor(
+    features: &Features,
+    pose: &Isometry3<f64>,
+    live: &[Vector3<f64>],
+    canon: &[Vector3<f64>],
+    bindings: &[Binding],
+    local_inverse: impl Fn(usize) -> Matrix3<f64>,
+    radius: f64,
+) -> Anchors {
+    let mut out = Anchors::default();
+    let Some(points) = &features.points else {
+        return out;
+    };
+    // Uniform grid of the live surfels, cells of `radius`: the closest within `radius` lies in
+    // the 27 cells around the query's.
+    let cell = |p: &Vector3<f64>| {
+        let c = p / radius;
+        (c.x.floor() as i64, c.y.floor() as i64, c.z.floor() as i64)
+    };
+    let mut grid: HashMap<(i64, i64, i64), Vec<u32>> = HashMap::new();
+    for (s, p) in live.iter().enumerate() {
+        if p.iter().all(|c| c.is_finite()) {
+            grid.entry(cell(p)).or_default().push(s as u32);
+        }
+    }
+    let mut keep = Vec::new();
+    for (i, q) in points.iter().enumerate() {
+        if !q.iter().all(|c| c.is_finite()) {
+            continue;
+        }
+        let world = (pose * Point3::new(q[0] as f64, q[1] as f64, q[2] as f64)).coords;
+        let (cx, cy, cz) = cell(&world);
+        let mut best = (radius * radius, usize::MAX);
+        for dz in -1..=1 {
+            for dy in -1..=1 {
+                for dx in -1..=1 {
+                    for &s in grid.get(&(cx + dx, cy + dy, cz + dz)).into_iter().flatten() {
+                        let d2 = (live[s as usize] - world).norm_squared();
+                        if d2 <= best.0 {
+                            best = (d2, s as usize);
+                        }
+                    }
+                }
+            }
+        }
+        let s = best.1;
+        if s == usize::MAX {
+            continue;
+        }
+        keep.push(i);
+        out.canon
+            .push(canon[s] + local_inverse(s) * (world - live[s]));
+        out.bindings.push(bindings[s]);
+        out.live.push(world);
+    }
+    out.descriptors = Some(match &features.descriptors {
+        Descriptors::Binary256(d) => Descriptors::Binary256(keep.iter().map(|&i| d[i]).collect()),
+        Descriptors::Float64(d) => Descriptors::Float64(keep.iter().map(|&i| d[i]).collect()),
+    });
+    out
+}
+
+/// This frame's correspondences: its keypoints (seen through intrinsics `k`) matched to the
+/// anchored ones, each with a 3D point (camera frame) within `max_jump_mm` of the anchor under
+/// `prior`.
+pub fn correspondences(
+    features: &Features,
+    anchors: &Anchors,
+    prior: &Isometry3<f64>,
+    k: &Intrinsics,
+    p: &CorrParams,
+) -> Result<Vec<Correspondence>, String> {
+    let (Some(points), Some(train)) = (&features.points, &anchors.descriptors) else {
+        return Ok(Vec::new());
+    };
+    if anchors.is_empty() || features.descriptors.is_empty() {
+        return Ok(Vec::new());
+    }
+    if std::mem::discriminant(train) != std::mem::discriminant(&features.descriptors) {
+        return Err("the features changed descriptor kind between frames".into());
+    }
+    let cfw = prior.inverse();
+    let predicted: Vec<[f32; 2]> = anchors
+        .live
+        .iter()
+        .map(|w| {
+            let c = cfw * Point3::from(*w);
+            if c.z <= 0.0 {
+                return [f32::NAN; 2];
+            }
+            [
+                (k.fx * c.x / c.z + k.cx) as f32,
+                (k.fy * c.y / c.z + k.cy) as f32,
+            ]
+        })
+        .collect();
+    let grid = KeypointGrid::build(&features.keypoints, k.width, k.height, p.radius_px);
+    let limit = match train {
+        Descriptors::Binary256(_) => p.max_distance,
+        Descriptors::Float64(_) => p.max_distance_l2,
+    };
+    let guided = GuidedParams {
+        radius_px: p.radius_px,
+        max_distance: limit,
+        ratio: p.ratio,
+        max_octave_gap: -1,
+    };
+    let matches = match_guided(
+        &predicted,
+        &[],
+        train,
+        &features.keypoints,
+        &features.descriptors,
+        &grid,
+        &guided,
+    );
+    let mut out = Vec::with_capacity(matches.len());
+    for m in matches {
+        let (q, a) = (m.query as usize, m.train as usize);
+        let Some(pt) = points.get(q).filter(|v| v.iter().all(|c| c.is_finite())) else {
+            continue;
+        };
+        let target = Vector3::new(pt[0] as f64, pt[1] as f64, pt[2] as f64);
+        if ((prior * Point3::from(target)).coords - anchors.live[a]).norm() > p.max_jump_mm {
+            continue;
+        }
+        out.push(Correspondence {
+            point: anchors.canon[a],
+            binding: anchors.bindings[a],
+            target,
+        });
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use misslam_framework::Keypoint;
+
+    fn binding(node: u32) -> Binding {
+        let mut b = Binding {
+            nodes: [0; misslam_deformation_ed::graph::MAX_K],
+            weights: [0.0; misslam_deformation_ed::graph::MAX_K],
+            len: 1,
+        };
+        b.nodes[0] = node;
+        b.weights[0] = 1.0;
+        b
+    }
+
+    /// Keypoints at camera-frame `points` (projected by `k`), descriptor i = [i; 4] * a pattern.
+    fn features(points: &[[f32; 3]], k: &Intrinsics) -> Features {
+        Features {
+            keypoints: points
+                .iter()
+                .map(|p| Keypoint {
+                    x: (k.fx * p[0] as f64 / p[2] as f64 + k.cx) as f32,
+                    y: (k.fy * p[1] as f64 / p[2] as f64 + k.cy) as f32,
+                    size: 31.0,
+                    angle: 0.0,
+                    response: 1.0,
+                    octave: 0,
+                })
+                .collect(),
+            descriptors: Descriptors::Binary256(
+                (0..points.len() as u64)
+                    .map(|i| [i.wrapping_mul(0x9E37_79B9_7F4A_7C15), !i, i << 7, i ^ 0xFF])
+                    .collect(),
+            ),
+            points: Some(points.to_vec()),
+        }
+    }
+
+    #[test]
+    fn keypoints_anchor_through_the_warp_and_match_their_moved_selves() {
+        let k = Intrinsics {
+            fx: 300.0,
+            fy: 300.0,
+            cx: 160.0,
+            cy: 120.0,
+            width: 320,
+            height: 240,
+        };
+        // Surfels on the plane z = 60 every 1 mm; the live model is the canonical one shifted by
+        // (0.5, 0, 0) with A = 2 I (so A^-1 maps a live offset back at half length).
+        let mut canon = Vec::new();
+        for y in -10..=10 {
+            for x in -10..=10 {
+                canon.push(Vector3::new(x as f64, y as f64, 60.0));
+            }
+        }
+        let shift = Vector3::new(0.5, 0.0, 0.0);
+        let live: Vec<Vector3<f64>> = canon.iter().map(|c| c + shift).collect();
+        let bindings: Vec<Binding> = (0..canon.len() as u32).map(binding).collect();
+        let a_inv = Matrix3::identity() * 0.5;
+        // Three keypoints on the model, one 5 mm in front of it (not anchored).
+        let pts = [
+            [0.8f32, 0.3, 60.0],
+            [-3.6, 2.1, 60.0],
+            [4.2, -5.4, 60.0],
+            [1.0, 1.0, 55.0],
+        ];
+        let pose = Isometry3::identity();
+        let a = anchor(
+            &features(&pts, &k),
+            &pose,
+            &live,
+            &canon,
+            &bindings,
+            |_| a_inv,
+            1.0,
+        );
+        assert_eq!(a.len(), 3);
+        // (0.8, 0.3): closest live surfel (0.5, 0) = canonical (0, 0); canonical anchor
+        // (0, 0) + 0.5 * (0.3, 0.3).
+        assert!((a.canon[0] - Vector3::new(0.15, 0.15, 60.0)).norm() < 1e-6);
+        assert_eq!(a.bindings[0].nodes[0], (10 * 21 + 10) as u32);
+
+        // The next frame: the same keypoints moved by 0.4 mm (and listed in another order),
+        // plus the last one 20 mm away (a wrong match, beyond max_jump_mm).
+        let moved = [[4.6f32, -5.4, 60.0], [1.2, 0.3, 60.0], [-3.2, 2.1, 60.0]];
+        let mut f = features(&moved, &k);
+        if let Descriptors::Binary256(d) = &mut f.descriptors {
+            d.swap(0, 2); // moved[0] is pts[2]: its descriptor is [2]
+            d.swap(1, 2); // moved[1] is pts[0], moved[2] is pts[1]
+        }
+        let p = CorrParams::default();
+        let c = correspondences(&f, &a, &pose, &k, &p).unwrap();
+        assert_eq!(c.len(), 3);
+        for corr in &c {
+            // Each target is its anchor's live point moved by 0.4 mm in x.
+            let i = a.canon.iter().position(|x| *x == corr.point).unwrap();
+            assert!((corr.target - (a.live[i] + Vector3::new(0.4, 0.0, 0.0))).norm() < 1e-5);
+        }
+        // A jump beyond max_jump_mm is refused.
+        let far = CorrParams {
+            max_jump_mm: 0.3,
+            ..CorrParams::default()
+        };
+        assert!(correspondences(&f, &a, &pose, &k, &far).unwrap().is_empty());
+        // Descriptors of another kind between frames are an error, not silent garbage.
+        let mut surf = f.clone();
+        surf.descriptors = Descriptors::Float64(vec![[0.0; 64]; 3]);
+        assert!(correspondences(&surf, &a, &pose, &k, &p).is_err());
+    }
+
+    #[test]
+    fn bad_parameters_are_named() {
+        let p = CorrParams {
+            radius_px: 0.0,
+            ..CorrParams::default()
+        };
+        assert!(p.validate().unwrap_err().contains("radius_px"));
+        let p = CorrParams {
+            ratio: 1.5,
+            ..CorrParams::default()
+        };
+        assert!(p.validate().unwrap_err().contains("ratio"));
+    }
+}
