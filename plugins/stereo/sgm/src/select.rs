@@ -2,6 +2,7 @@
 //! parabola) and the right one for the left-right check.
 
 use crate::aggregate::{lanes, lanes_mut, Ctx, FAR, LANES};
+use crate::sgm::SgmParams;
 
 /// Minimum of a slice (FAR when empty), 16 lanes at a time.
 #[inline(always)]
@@ -15,6 +16,31 @@ fn min_i16(s: &[i16]) -> i16 {
         }
     }
     m.iter().copied().fold(tail, i16::min)
+}
+
+/// The disparity index of a pixel (NaN when it fails the uniqueness margin) from its sums
+/// `cell`, the best sum `best` at index `bd`, and the second best `second` beyond `bd` +- 1
+/// (FAR when there is none: the margin test then passes, as with u16::MAX in the reference);
+/// refined by the parabola through `bd` - 1, `bd`, `bd` + 1 when asked.
+#[inline(always)]
+fn settle(cell: &[i16], best: i16, bd: usize, second: i16, nd: usize, p: &SgmParams) -> f32 {
+    let second = if second == FAR {
+        u64::from(u16::MAX)
+    } else {
+        second as u64
+    };
+    if (best as u64) * (100 + p.uniqueness_pct as u64) > second * 100 {
+        return f32::NAN;
+    }
+    let mut d = bd as f32;
+    if p.subpixel && bd > 0 && bd + 1 < nd {
+        let (a, b, c) = (cell[bd - 1] as f32, cell[bd] as f32, cell[bd + 1] as f32);
+        let den = a - 2.0 * b + c;
+        if den > 0.0 {
+            d += 0.5 * (a - c) / den;
+        }
+    }
+    d
 }
 
 /// Buffers of the right-disparity search of one row.
@@ -113,26 +139,7 @@ fn select_row_avx2(
             let c = _mm256_max_epi16(load(cell + q * LANES), _mm256_and_si256(near, far));
             sec = _mm256_min_epi16(sec, c);
         }
-        let second = hmin_avx2(sec);
-        let second = if second == FAR {
-            u64::from(u16::MAX)
-        } else {
-            second as u64
-        };
-        if (best as u64) * (100 + p.uniqueness_pct as u64) > second * 100 {
-            *out = f32::NAN;
-            continue;
-        }
-        let mut d = bd as f32;
-        if p.subpixel && bd > 0 && bd + 1 < nd {
-            let c = &tot[cell..cell + dp];
-            let (a, b, c) = (c[bd - 1] as f32, c[bd] as f32, c[bd + 1] as f32);
-            let den = a - 2.0 * b + c;
-            if den > 0.0 {
-                d += 0.5 * (a - c) / den;
-            }
-        }
-        *out = d + dmin;
+        *out = settle(&tot[cell..cell + dp], best, bd, hmin_avx2(sec), nd, p) + dmin;
     }
     // Right disparities. Chunk q of the window at rs.best/rs.arg[q * LANES..]: lane d of right
     // pixel xr = x - dmin - d. Guard lanes below d = 0 hold FAR.
@@ -222,25 +229,7 @@ fn select_row_generic(
         let (best, bd) = (k >> 10, (k & 1023) as usize);
         // Second best beyond d +- 1.
         let second = min_i16(&cell[..bd.saturating_sub(1)]).min(min_i16(&cell[(bd + 2).min(dp)..]));
-        // Without a second candidate the margin test passes (as with u16::MAX in the reference).
-        let second = if second == FAR {
-            u64::from(u16::MAX)
-        } else {
-            second as u64
-        };
-        if (best as u64) * (100 + p.uniqueness_pct as u64) > second * 100 {
-            *out = f32::NAN;
-            continue;
-        }
-        let mut d = bd as f32;
-        if p.subpixel && bd > 0 && bd + 1 < nd {
-            let (a, b, c) = (cell[bd - 1] as f32, cell[bd] as f32, cell[bd + 1] as f32);
-            let den = a - 2.0 * b + c;
-            if den > 0.0 {
-                d += 0.5 * (a - c) / den;
-            }
-        }
-        *out = d + dmin;
+        *out = settle(cell, best as i16, bd, second, nd, p) + dmin;
     }
     // Right disparities: left pixel x at disparity d votes for xr = x - d - dmin. Visiting x in
     // increasing order visits each xr's candidates in increasing d, so a strict "<" keeps the
