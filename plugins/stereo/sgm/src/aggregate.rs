@@ -51,6 +51,32 @@ impl PassScratch {
         self.rev.resize(w + 2 * pad, 0);
     }
 
+    /// Starts row `y`: its matching costs, and the path along the row from zero at the border
+    /// (L = C).
+    #[inline(always)]
+    pub(crate) fn start_row(&mut self, ctx: &Ctx, y: usize, costs: &mut Costs) {
+        self.row_costs(ctx, y, costs);
+        self.row_path.clear();
+        push_paths(&mut self.row_path, 1, ctx.dp);
+    }
+
+    /// Ends a row: the last pixel's held-back L (path `v` of `nv`, minimum `held_min`) goes to
+    /// its slot.
+    pub(crate) fn flush_held(
+        &mut self,
+        ctx: &Ctx,
+        nv: usize,
+        v: usize,
+        forward: bool,
+        held_min: i16,
+    ) {
+        let (w, dp) = (ctx.w, ctx.dp);
+        let x_last = if forward { w - 1 } else { 0 };
+        let s = ((x_last + 1) * nv + v) * ctx.stride() + GUARD;
+        self.paths[s..s + dp].copy_from_slice(&self.held);
+        self.mins[v * (w + 2) + x_last + 1] = held_min;
+    }
+
     /// The matching costs of row `y` into `self.cost` (W x D', padding lanes FAR). Inlined, so
     /// the caller's target features (POPCNT) apply.
     #[inline(always)]
@@ -130,6 +156,19 @@ pub(crate) struct Ctx<'a> {
 impl Ctx<'_> {
     pub(crate) fn stride(&self) -> usize {
         GUARD + self.dp
+    }
+
+    /// P2 between a pixel of gray level `g` and its predecessor (xp, yp) on a path; 0 when the
+    /// predecessor is outside the image (a path start: min(prev) = 0 and every term is >= 0,
+    /// so P2 plays no part).
+    #[inline(always)]
+    pub(crate) fn p2_from(&self, g: u8, xp: usize, yp: usize) -> i16 {
+        if xp < self.w && yp < self.h {
+            self.p
+                .p2_at(u16::from(g.abs_diff(self.img[yp * self.w + xp]))) as i16
+        } else {
+            0
+        }
     }
 }
 
@@ -215,7 +254,7 @@ fn step(
 
 /// Appends `slots` path slots: GUARD lanes at FAR, then D' disparities at 0 (a path start:
 /// L = C), and a trailing guard.
-pub(crate) fn push_paths(buf: &mut Vec<i16>, slots: usize, dp: usize) {
+fn push_paths(buf: &mut Vec<i16>, slots: usize, dp: usize) {
     for _ in 0..slots {
         buf.extend(std::iter::repeat_n(FAR, GUARD));
         buf.extend(std::iter::repeat_n(0, dp));
@@ -248,10 +287,7 @@ fn pass_n<const NV: usize>(
     let p1 = p.p1 as i16;
     for k in 0..h {
         let y = if forward { k } else { h - 1 - k };
-        ps.row_costs(ctx, y, &mut costs);
-        // The path along the row starts from zero at the border (L = C).
-        ps.row_path.clear();
-        push_paths(&mut ps.row_path, 1, dp);
+        ps.start_row(ctx, y, &mut costs);
         let mut row_min = 0i16;
         let mut held_min = 0i16;
         let prev_y = if forward { y.wrapping_sub(1) } else { y + 1 };
@@ -260,13 +296,7 @@ fn pass_n<const NV: usize>(
         for j in 0..w {
             let x = if forward { j } else { w - 1 - j };
             let g = ctx.img[y * w + x];
-            let p2_from = |xp: usize, yp: usize| -> i16 {
-                if xp < w && yp < h {
-                    p.p2_at(u16::from(g.abs_diff(ctx.img[yp * w + xp]))) as i16
-                } else {
-                    0 // a path start: min(prev) = 0 and every term is >= 0, P2 plays no part
-                }
-            };
+            let p2_from = |xp: usize, yp: usize| ctx.p2_from(g, xp, yp);
             let mut slot = [0usize; NV];
             let mut jump = [0i16; NV];
             let mut min_prev = [0i16; NV];
@@ -345,14 +375,8 @@ fn pass_n<const NV: usize>(
             row_min = mn.iter().copied().fold(FAR, i16::min);
             std::mem::swap(&mut ps.held, &mut ps.holding);
         }
-        // The last pixel's held-back L.
-        for (v, &dx) in vdx.iter().enumerate() {
-            if dx == step_x {
-                let x_last = if forward { w - 1 } else { 0 };
-                let s = ((x_last + 1) * NV + v) * stride + GUARD;
-                ps.paths[s..s + dp].copy_from_slice(&ps.held);
-                ps.mins[v * (w + 2) + x_last + 1] = held_min;
-            }
+        if let Some(v) = vdx.iter().position(|&dx| dx == step_x) {
+            ps.flush_held(ctx, NV, v, forward, held_min);
         }
         after_row(y, out_row);
     }

@@ -155,9 +155,7 @@ fn pass_n<const NV: usize>(
     let delayed_v = vdx.iter().position(|&dx| dx == step_x);
     for k in 0..h {
         let y = if forward { k } else { h - 1 - k };
-        ps.row_costs(ctx, y, &mut costs);
-        ps.row_path.clear();
-        crate::aggregate::push_paths(&mut ps.row_path, 1, dp);
+        ps.start_row(ctx, y, &mut costs);
         let mut row_min = 0i16;
         let mut held_min = 0i16;
         let prev_y = if forward { y.wrapping_sub(1) } else { y + 1 };
@@ -174,13 +172,7 @@ fn pass_n<const NV: usize>(
             let g = img_row[x];
             // Swapped after every pixel.
             let (held, holding) = (ps.held.as_ptr(), ps.holding.as_mut_ptr());
-            let p2_from = |xp: usize, yp: usize| -> i16 {
-                if xp < w && yp < h {
-                    p.p2_at(u16::from(g.abs_diff(ctx.img[yp * w + xp]))) as i16
-                } else {
-                    0 // a path start: min(prev) = 0 and every term is >= 0, P2 plays no part
-                }
-            };
+            let p2_from = |xp: usize, yp: usize| ctx.p2_from(g, xp, yp);
             // SAFETY: x < w; the cell x * dp.. of the cost row, the sums and `init` hold dp
             // lanes; path slots s <= w + 1 of NV segments of `stride` lanes (plus a trailing
             // guard) lie in `paths` (sized by `begin`), held and holding hold dp lanes, and
@@ -248,12 +240,8 @@ fn pass_n<const NV: usize>(
             }
             std::mem::swap(&mut ps.held, &mut ps.holding);
         }
-        // The last pixel's held-back L.
         if let Some(v) = delayed_v {
-            let x_last = if forward { w - 1 } else { 0 };
-            let s = ((x_last + 1) * NV + v) * stride + GUARD;
-            ps.paths[s..s + dp].copy_from_slice(&ps.held);
-            ps.mins[v * (w + 2) + x_last + 1] = held_min;
+            ps.flush_held(ctx, NV, v, forward, held_min);
         }
         after_row(y, out_row);
     }
