@@ -395,9 +395,8 @@ pub fn ed_scaling(p: &EdScalingParams) -> Result<Vec<EdScalingRow>, String> {
                 let vis = visible_points(
                     g, &points, &normals, &bindings, &pose, &k, &verts, &norms, 5.0, 60.0,
                 );
-                let lp: Vec<Vector3<f64>> = vis.iter().map(|&i| points[i as usize]).collect();
-                let ln: Vec<Vector3<f64>> = vis.iter().map(|&i| normals[i as usize]).collect();
-                let lb: Vec<Binding> = vis.iter().map(|&i| bindings[i as usize]).collect();
+                let mut l = ModelSubset::default();
+                l.gather(&vis, &points, &normals, &bindings);
                 // Sparse correspondences on every 15th visible point (what feature matches give;
                 // point-to-plane alone cannot see sliding along the surface).
                 let corr: Vec<Correspondence> = vis
@@ -410,11 +409,7 @@ pub fn ed_scaling(p: &EdScalingParams) -> Result<Vec<EdScalingRow>, String> {
                     })
                     .collect();
                 let problem = Problem {
-                    model: ModelPoints {
-                        points: &lp,
-                        normals: &ln,
-                        bindings: &lb,
-                    },
+                    model: l.view(),
                     scan: Some(Scan {
                         intrinsics: k,
                         vertices: &verts,

@@ -47,6 +47,48 @@ pub struct ModelPoints<'a> {
     pub bindings: &'a [Binding],
 }
 
+/// The visible set L gathered from a model's per-point arrays, in buffers a caller keeps across
+/// frames.
+#[derive(Clone, Debug, Default)]
+pub struct ModelSubset {
+    /// Positions of the gathered points.
+    pub points: Vec<Vector3<f64>>,
+    /// Their normals.
+    pub normals: Vec<Vector3<f64>>,
+    /// Their bindings.
+    pub bindings: Vec<Binding>,
+}
+
+impl ModelSubset {
+    /// Replaces the contents with the points at `indices`.
+    pub fn gather(
+        &mut self,
+        indices: &[u32],
+        points: &[Vector3<f64>],
+        normals: &[Vector3<f64>],
+        bindings: &[Binding],
+    ) {
+        self.points.clear();
+        self.points
+            .extend(indices.iter().map(|&i| points[i as usize]));
+        self.normals.clear();
+        self.normals
+            .extend(indices.iter().map(|&i| normals[i as usize]));
+        self.bindings.clear();
+        self.bindings
+            .extend(indices.iter().map(|&i| bindings[i as usize]));
+    }
+
+    /// The gathered points as the data terms see them.
+    pub fn view(&self) -> ModelPoints<'_> {
+        ModelPoints {
+            points: &self.points,
+            normals: &self.normals,
+            bindings: &self.bindings,
+        }
+    }
+}
+
 impl ModelPoints<'_> {
     /// No points.
     pub const EMPTY: ModelPoints<'static> = ModelPoints {

@@ -116,9 +116,8 @@ fn run(decoupled: bool, corr_every: usize) -> Option<Outcome> {
         seen = seen_flipped;
     }
     assert!(seen.len() > 200, "{} visible vertices", seen.len());
-    let lp: Vec<Vector3<f64>> = seen.iter().map(|&i| rest[i as usize]).collect();
-    let ln: Vec<Vector3<f64>> = seen.iter().map(|&i| normals[i as usize]).collect();
-    let lb: Vec<Binding> = seen.iter().map(|&i| bindings[i as usize]).collect();
+    let mut l = ModelSubset::default();
+    l.gather(&seen, &rest, &normals, &bindings);
     // Sparse correspondences on every `corr_every`-th seen vertex (what matched features give).
     let cfw = world_from_camera.inverse();
     let corr: Vec<Correspondence> = if corr_every == 0 {
@@ -134,11 +133,7 @@ fn run(decoupled: bool, corr_every: usize) -> Option<Outcome> {
             .collect()
     };
     let problem = Problem {
-        model: ModelPoints {
-            points: &lp,
-            normals: &ln,
-            bindings: &lb,
-        },
+        model: l.view(),
         scan: Some(Scan {
             intrinsics: k_in,
             vertices: &maps.0,

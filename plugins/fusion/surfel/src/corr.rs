@@ -11,8 +11,6 @@
 //! (camera frame). A match whose 3D point lies farther than `max_jump_mm` from the anchor's live
 //! position (under the prior pose) is dropped as wrong.
 
-use std::collections::HashMap;
-
 use misslam_deformation_ed::graph::Binding;
 use misslam_deformation_ed::problem::Correspondence;
 use misslam_deformation_ed::problem::Intrinsics;
@@ -97,8 +95,26 @@ impl Anchors {
     }
 }
 
+/// Reusable buffers of [`anchor`]: the live surfels near the keypoints, as (cell key, surfel)
+/// sorted by key.
+#[derive(Default)]
+pub struct AnchorScratch {
+    cells: Vec<(u64, u32)>,
+    world: Vec<Vector3<f64>>,
+}
+
+/// Key of grid cell (x, y, z) (21 bits each, offset so small negative cells stay positive); x
+/// varies fastest, so the three cells x - 1..=x + 1 of a row are consecutive keys.
+fn cell_key(c: [i64; 3]) -> u64 {
+    const OFF: i64 = 1 << 20;
+    let b = |v: i64| (v + OFF).clamp(0, (1 << 21) - 1) as u64;
+    (b(c[2]) << 42) | (b(c[1]) << 21) | b(c[0])
+}
+
 /// Anchors `features` (camera frame, seen at `pose`) to the live model: `live`/`canon`/
-/// `bindings` per surfel, `local_inverse(s)` the warp's A^-1 at surfel `s`.
+/// `bindings` per surfel, `local_inverse(s)` the warp's A^-1 at surfel `s`. Only the surfels in
+/// the keypoints' bounding box (grown by `radius`) are binned, in cells of `radius`, so the
+/// closest within `radius` lies in the 27 cells around the keypoint's.
 #[allow(clippy::too_many_arguments)]
 pub fn anchor(
     features: &Features,
@@ -108,39 +124,52 @@ pub fn anchor(
     bindings: &[Binding],
     local_inverse: impl Fn(usize) -> Matrix3<f64>,
     radius: f64,
+    scratch: &mut AnchorScratch,
 ) -> Anchors {
     let mut out = Anchors::default();
     let Some(points) = &features.points else {
         return out;
     };
-    // Uniform grid of the live surfels, cells of `radius`: the closest within `radius` lies in
-    // the 27 cells around the query's.
-    let cell = |p: &Vector3<f64>| {
-        let c = p / radius;
-        (c.x.floor() as i64, c.y.floor() as i64, c.z.floor() as i64)
-    };
-    let mut grid: HashMap<(i64, i64, i64), Vec<u32>> = HashMap::new();
+    let AnchorScratch { cells, world } = scratch;
+    world.clear();
+    world.extend(
+        points
+            .iter()
+            .map(|q| (pose * Point3::new(q[0] as f64, q[1] as f64, q[2] as f64)).coords),
+    );
+    let (mut lo, mut hi) = (
+        Vector3::repeat(f64::INFINITY),
+        Vector3::repeat(f64::NEG_INFINITY),
+    );
+    for p in world.iter().filter(|p| p.iter().all(|c| c.is_finite())) {
+        lo = lo.inf(p);
+        hi = hi.sup(p);
+    }
+    let cell = |p: &Vector3<f64>| (p / radius).map(|c| c.floor() as i64);
+    let (lo, hi) = (lo.add_scalar(-radius), hi.add_scalar(radius));
+    cells.clear();
     for (s, p) in live.iter().enumerate() {
-        if p.iter().all(|c| c.is_finite()) {
-            grid.entry(cell(p)).or_default().push(s as u32);
+        if (0..3).all(|i| p[i] >= lo[i] && p[i] <= hi[i]) {
+            cells.push((cell_key(cell(p).into()), s as u32));
         }
     }
+    cells.sort_unstable();
     let mut keep = Vec::new();
-    for (i, q) in points.iter().enumerate() {
-        if !q.iter().all(|c| c.is_finite()) {
+    for (i, w) in world.iter().enumerate() {
+        if !w.iter().all(|c| c.is_finite()) {
             continue;
         }
-        let world = (pose * Point3::new(q[0] as f64, q[1] as f64, q[2] as f64)).coords;
-        let (cx, cy, cz) = cell(&world);
+        let c = cell(w);
         let mut best = (radius * radius, usize::MAX);
         for dz in -1..=1 {
             for dy in -1..=1 {
-                for dx in -1..=1 {
-                    for &s in grid.get(&(cx + dx, cy + dy, cz + dz)).into_iter().flatten() {
-                        let d2 = (live[s as usize] - world).norm_squared();
-                        if d2 <= best.0 {
-                            best = (d2, s as usize);
-                        }
+                let row = [c.x, c.y + dy, c.z + dz];
+                let first = cells.partition_point(|e| e.0 < cell_key([row[0] - 1, row[1], row[2]]));
+                let last = cells.partition_point(|e| e.0 <= cell_key([row[0] + 1, row[1], row[2]]));
+                for &(_, s) in &cells[first..last] {
+                    let d2 = (live[s as usize] - w).norm_squared();
+                    if d2 <= best.0 {
+                        best = (d2, s as usize);
                     }
                 }
             }
@@ -150,10 +179,9 @@ pub fn anchor(
             continue;
         }
         keep.push(i);
-        out.canon
-            .push(canon[s] + local_inverse(s) * (world - live[s]));
+        out.canon.push(canon[s] + local_inverse(s) * (w - live[s]));
         out.bindings.push(bindings[s]);
-        out.live.push(world);
+        out.live.push(*w);
     }
     out.descriptors = Some(match &features.descriptors {
         Descriptors::Binary256(d) => Descriptors::Binary256(keep.iter().map(|&i| d[i]).collect()),
@@ -305,6 +333,7 @@ mod tests {
             [1.0, 1.0, 55.0],
         ];
         let pose = Isometry3::identity();
+        let mut scratch = AnchorScratch::default();
         let a = anchor(
             &features(&pts, &k),
             &pose,
@@ -313,8 +342,49 @@ mod tests {
             &bindings,
             |_| a_inv,
             1.0,
+            &mut scratch,
         );
         assert_eq!(a.len(), 3);
+        // The binned search finds what a scan of every surfel finds, on points around cell
+        // corners and beyond the radius (the scratch reused from the call above).
+        let probes: Vec<[f32; 3]> = (0..200)
+            .map(|i| {
+                let t = i as f32 * 0.37;
+                [
+                    (t.sin() * 9.7),
+                    (t * 1.3).cos() * 9.9,
+                    60.0 + (t * 0.7).sin() * 1.2,
+                ]
+            })
+            .collect();
+        // (Against the canonical grid itself: surfels on cell corners, so the nearest is often
+        // in a neighbouring cell.)
+        let b = anchor(
+            &features(&probes, &k),
+            &pose,
+            &canon,
+            &canon,
+            &bindings,
+            |_| Matrix3::zeros(),
+            1.0,
+            &mut scratch,
+        );
+        let mut found = 0;
+        for q in &probes {
+            let q = Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64);
+            let nearest = (0..canon.len())
+                .filter(|&s| (canon[s] - q).norm() <= 1.0)
+                .min_by(|&x, &y| (canon[x] - q).norm().total_cmp(&(canon[y] - q).norm()));
+            if let Some(s) = nearest {
+                // With A^-1 = 0 the anchor is its surfel's position: as close as the nearest
+                // (ties may pick either).
+                let d = (b.canon[found] - q).norm();
+                assert!((d - (canon[s] - q).norm()).abs() < 1e-12, "probe {q:?}");
+                found += 1;
+            }
+        }
+        assert_eq!(found, b.len());
+        assert!(found > 50 && found < 200, "{found} of 200 probes anchored");
         // (0.8, 0.3): closest live surfel (0.5, 0) = canonical (0, 0); canonical anchor
         // (0, 0) + 0.5 * (0.3, 0.3).
         assert!((a.canon[0] - Vector3::new(0.15, 0.15, 60.0)).norm() < 1e-6);

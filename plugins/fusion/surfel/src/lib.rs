@@ -29,7 +29,7 @@ use misslam_deformation_ed::graph::{Binding, EdGraph, GraphParams};
 use misslam_deformation_ed::observe::{
     color_at, color_quality, scan_from_depth_into, visible_points,
 };
-use misslam_deformation_ed::problem::{Intrinsics, ModelPoints, Problem, Scan, SolverParams};
+use misslam_deformation_ed::problem::{Intrinsics, ModelSubset, Problem, Scan, SolverParams};
 use misslam_framework::geometry::{arr3, vec3};
 use misslam_framework::nalgebra::{Isometry3, Matrix3, Point3, Vector3};
 use misslam_framework::{
@@ -237,6 +237,8 @@ impl Stages {
 pub struct SurfelNode {
     p: Params,
     engine: Engine,
+    /// The visible set handed to the solve (buffers kept across frames).
+    subset: ModelSubset,
     model: Model,
     graph: Option<EdGraph>,
     vertices: Vec<[f32; 3]>,
@@ -247,6 +249,7 @@ pub struct SurfelNode {
     disagreeing: bool,
     /// The previous frame's keypoints anchored to the model (E_corr).
     anchors: corr::Anchors,
+    anchor_scratch: corr::AnchorScratch,
     /// Solves run, and the correspondences they used (for `metrics.json`).
     solves: u64,
     corr_used: u64,
@@ -371,9 +374,8 @@ impl SurfelNode {
                 self.p.visible_distance_mm,
                 self.p.visible_angle_deg,
             );
-            let lp: Vec<Vector3<f64>> = visible.iter().map(|&i| m.canon[i as usize]).collect();
-            let ln: Vec<Vector3<f64>> = visible.iter().map(|&i| m.normals[i as usize]).collect();
-            let lb: Vec<Binding> = visible.iter().map(|&i| m.bindings[i as usize]).collect();
+            self.subset
+                .gather(&visible, &m.canon, &m.normals, &m.bindings);
             let corrs = match features {
                 Some(f) => {
                     corr::correspondences(f, &self.anchors, &pose, &k, &self.p.correspondences)
@@ -387,11 +389,7 @@ impl SurfelNode {
             self.solves += 1;
             self.corr_used += corrs.len() as u64;
             let problem = Problem {
-                model: ModelPoints {
-                    points: &lp,
-                    normals: &ln,
-                    bindings: &lb,
-                },
+                model: self.subset.view(),
                 scan: Some(Scan {
                     intrinsics: k,
                     vertices: &self.vertices,
@@ -619,6 +617,7 @@ impl SurfelNode {
                     &m.bindings,
                     |s| local_inverses(&m.bindings[s], &nm).0,
                     self.p.correspondences.anchor_distance_mm,
+                    &mut self.anchor_scratch,
                 )
             }
             _ => corr::Anchors::default(),
@@ -710,6 +709,7 @@ pub fn build(p: Params, _: &BuildContext) -> Result<SurfelNode, BuildError> {
     Ok(SurfelNode {
         p,
         engine,
+        subset: ModelSubset::default(),
         model: Model::default(),
         graph: None,
         vertices: Vec::new(),
@@ -717,6 +717,7 @@ pub fn build(p: Params, _: &BuildContext) -> Result<SurfelNode, BuildError> {
         disagreed: 0,
         disagreeing: false,
         anchors: corr::Anchors::default(),
+        anchor_scratch: corr::AnchorScratch::default(),
         solves: 0,
         corr_used: 0,
     })

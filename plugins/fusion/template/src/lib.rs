@@ -28,7 +28,7 @@ use misslam_deformation_ed::graph::{Binding, EdGraph, GraphParams};
 use misslam_deformation_ed::observe::{
     color_at, color_quality, scan_from_depth_into, template_points, visible_points,
 };
-use misslam_deformation_ed::problem::{Intrinsics, ModelPoints, Problem, Scan, SolverParams};
+use misslam_deformation_ed::problem::{Intrinsics, ModelSubset, Problem, Scan, SolverParams};
 use misslam_deformation_ed::DistanceField;
 use misslam_framework::geometry::arr3;
 use misslam_framework::nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
@@ -268,6 +268,8 @@ struct Model {
 pub struct TemplateNode {
     p: Params,
     engine: Engine,
+    /// The visible set handed to the solve (buffers kept across frames).
+    subset: ModelSubset,
     /// The template read from `template_path` at build time.
     file_template: Option<Arc<Mesh>>,
     model: Option<Model>,
@@ -533,19 +535,10 @@ impl TemplateNode {
                 }
                 DataTerm::Projective => None,
             };
-            let lp: Vec<Vector3<f64>> = visible.iter().map(|&i| model.points[i as usize]).collect();
-            let ln: Vec<Vector3<f64>> =
-                visible.iter().map(|&i| model.normals[i as usize]).collect();
-            let lb: Vec<Binding> = visible
-                .iter()
-                .map(|&i| model.bindings[i as usize])
-                .collect();
+            self.subset
+                .gather(&visible, &model.points, &model.normals, &model.bindings);
             let problem = Problem {
-                model: ModelPoints {
-                    points: &lp,
-                    normals: &ln,
-                    bindings: &lb,
-                },
+                model: self.subset.view(),
                 scan: match self.p.data_term {
                     DataTerm::Projective => Some(Scan {
                         intrinsics: k,
@@ -721,6 +714,7 @@ pub fn build(p: Params, ctx: &BuildContext) -> Result<TemplateNode, BuildError> 
     };
     Ok(TemplateNode {
         engine: Engine::new(p.solver_kind),
+        subset: ModelSubset::default(),
         p,
         file_template,
         model: None,
