@@ -1,245 +1,399 @@
 #![allow(clippy::unwrap_used)]
-//! Recovery of the beating heart of `../shared/data/heart`: frame 0 deformed to frame k, observed as
-//! noise-free depth from a camera that sees one side of it. Skips (printing why) without the data.
+//! Recovery of the beating heart of `../shared/data/heart`: the rest shape (frame 0) tracked to
+//! the frame of largest displacement, observed as noise-free depth from a camera that sees one side
+//! of it. Skips (printing why) without the data.
+//!
+//! The model is what fusion would hold: the rest mesh sampled densely (every triangle split into
+//! 16, 33,877 points with interpolated normals), not just its 1,357 vertices, which leave the data
+//! term too sparse. The depth is rendered from the true mesh at each frame. Errors are measured on
+//! the mesh vertices: "seen" are those on the last frame's depth (their true position within
+//! 0.5 mm of the scan), the rest are "unseen".
 
 mod common;
 
-use misslam_deformation_ed::observe::visible_points;
+use misslam_deformation_ed::observe::{mesh_normals, visible_points};
 use misslam_deformation_ed::*;
 use misslam_framework::nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use misslam_source_phantom::mesh_input::{read_npy_frames, read_obj};
 use misslam_source_phantom::render::{rasterize, scan_maps, Raster, View};
 use std::path::Path;
 
-#[allow(dead_code)]
-struct Outcome {
-    seen_mean: f64,
-    unseen_mean: f64,
-    seen: usize,
-    unseen: usize,
-    motion_seen: f64,
-    motion_unseen: f64,
+/// Camera, 320x240, 150 mm from the heart's centroid, looking along +z of the mesh frame.
+const K: Intrinsics = Intrinsics {
+    fx: 400.0,
+    fy: 400.0,
+    cx: 159.5,
+    cy: 119.5,
+    width: 320,
+    height: 240,
+};
+/// Triangle subdivision of the model (n^2 points per triangle).
+const SUBDIVISION: usize = 4;
+
+type Maps = (Vec<[f32; 3]>, Vec<[f32; 3]>);
+
+/// The sequence and the model built from its rest shape.
+struct Heart {
+    frames: Vec<Vec<Vector3<f64>>>,
+    triangles: Vec<[u32; 3]>,
+    /// The model: each point as barycentric weights of three mesh vertices (the vertices first).
+    samples: Vec<([usize; 3], [f64; 3])>,
+    /// Outward vertex normals of the rest shape, facing the camera on the seen side.
+    normals: Vec<Vector3<f64>>,
+    world_from_camera: Isometry3<f64>,
+    /// The frame of largest mean displacement from frame 0.
+    last: usize,
 }
 
-fn run(decoupled: bool, corr_every: usize) -> Option<Outcome> {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../../shared/data/heart");
-    if !dir.is_dir() {
-        println!("skipped: {} is absent", dir.display());
-        return None;
-    }
-    let mesh = read_obj(&dir.join("heart.obj")).expect("heart.obj");
-    let (frames, nv, traj) =
-        read_npy_frames(&dir.join("heart_trajectory.npy")).expect("trajectory");
-    assert_eq!(nv, mesh.vertices.len());
-    let at = |f: usize| -> Vec<Vector3<f64>> {
-        traj[f * nv..(f + 1) * nv]
-            .iter()
-            .map(|p| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64))
-            .collect()
-    };
-    let rest = at(0);
-    // The frame of largest mean displacement.
-    let k = (1..frames)
-        .max_by(|&a, &b| {
-            let m = |f: usize| {
-                at(f)
+impl Heart {
+    fn load() -> Option<Heart> {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../../shared/data/heart");
+        if !dir.is_dir() {
+            println!("skipped: {} is absent", dir.display());
+            return None;
+        }
+        let mesh = read_obj(&dir.join("heart.obj")).expect("heart.obj");
+        let (n_frames, nv, traj) =
+            read_npy_frames(&dir.join("heart_trajectory.npy")).expect("trajectory");
+        assert_eq!(nv, mesh.vertices.len());
+        let frames: Vec<Vec<Vector3<f64>>> = (0..n_frames)
+            .map(|f| {
+                traj[f * nv..(f + 1) * nv]
                     .iter()
-                    .zip(&rest)
-                    .map(|(x, y)| (x - y).norm())
-                    .sum::<f64>()
-            };
-            m(a).total_cmp(&m(b))
-        })
-        .unwrap_or(1);
-    let truth = at(k);
-    // Camera 150 mm from the centroid, looking at it along +z of the mesh frame.
-    let c = rest.iter().sum::<Vector3<f64>>() / rest.len() as f64;
-    let world_from_camera = Isometry3::from_parts(
-        Translation3::from(c - Vector3::new(0.0, 0.0, 150.0)),
-        UnitQuaternion::identity(),
-    );
-    let k_in = Intrinsics {
-        fx: 400.0,
-        fy: 400.0,
-        cx: 159.5,
-        cy: 119.5,
-        width: 320,
-        height: 240,
-    };
-    let view = View {
-        fx: 400.0,
-        fy: 400.0,
-        cx: 159.5,
-        cy: 119.5,
-        width: 320,
-        height: 240,
-        camera_from_world: world_from_camera.inverse().cast::<f32>(),
-    };
-    let verts: Vec<[f32; 3]> = truth
-        .iter()
-        .map(|p| [p.x as f32, p.y as f32, p.z as f32])
-        .collect();
-    let mut raster = Raster::default();
-    let mut cam = Vec::new();
-    rasterize(&view, &verts, &mesh.triangles, &mut cam, &mut raster);
-    let maps = scan_maps(&view, &raster, &cam, &mesh.triangles);
-    // Outward normals from the winding; flip them all if most visible ones face away.
-    let mut normals = misslam_deformation_ed::observe::mesh_normals(&rest, &mesh.triangles);
-    let graph0 = EdGraph::from_points(
-        &rest,
-        GraphParams {
-            spacing: 8.0,
-            ..Default::default()
-        },
-    )
-    .unwrap();
-    let bindings = graph0.bind_all(&rest);
-    let vis = |n: &[Vector3<f64>]| {
-        visible_points(
-            &graph0,
-            &rest,
-            n,
-            &bindings,
-            &world_from_camera,
-            &k_in,
-            &maps.0,
-            &maps.1,
-            6.0,
-            75.0,
-        )
-    };
-    let mut seen = vis(&normals);
-    let flipped: Vec<Vector3<f64>> = normals.iter().map(|n| -n).collect();
-    let seen_flipped = vis(&flipped);
-    if seen_flipped.len() > seen.len() {
-        normals = flipped;
-        seen = seen_flipped;
-    }
-    assert!(seen.len() > 200, "{} visible vertices", seen.len());
-    let mut l = ModelSubset::default();
-    l.gather(&seen, &rest, &normals, &bindings);
-    // Sparse correspondences on every `corr_every`-th seen vertex (what matched features give).
-    let cfw = world_from_camera.inverse();
-    let corr: Vec<Correspondence> = if corr_every == 0 {
-        Vec::new()
-    } else {
-        seen.iter()
-            .step_by(corr_every)
-            .map(|&i| Correspondence {
-                point: rest[i as usize],
-                binding: bindings[i as usize],
-                target: (cfw * Point3::from(truth[i as usize])).coords,
+                    .map(|p| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64))
+                    .collect()
             })
-            .collect()
+            .collect();
+        let rest = &frames[0];
+        let displacement = |f: &Vec<Vector3<f64>>| -> f64 {
+            f.iter().zip(rest).map(|(x, y)| (x - y).norm()).sum()
+        };
+        let last = (1..n_frames)
+            .max_by(|&a, &b| displacement(&frames[a]).total_cmp(&displacement(&frames[b])))
+            .unwrap_or(1);
+        let c = rest.iter().sum::<Vector3<f64>>() / rest.len() as f64;
+        let world_from_camera = Isometry3::from_parts(
+            Translation3::from(c - Vector3::new(0.0, 0.0, 150.0)),
+            UnitQuaternion::identity(),
+        );
+        let mut samples: Vec<([usize; 3], [f64; 3])> =
+            (0..nv).map(|i| ([i; 3], [1.0, 0.0, 0.0])).collect();
+        let n = SUBDIVISION;
+        for t in &mesh.triangles {
+            let t = t.map(|i| i as usize);
+            for i in 0..=n {
+                for j in 0..=n - i {
+                    let k = n - i - j;
+                    // Interior and edge points; the corners are the vertices already in.
+                    if i < n && j < n && k < n {
+                        samples.push((t, [i, j, k].map(|x| x as f64 / n as f64)));
+                    }
+                }
+            }
+        }
+        let normals = mesh_normals(rest, &mesh.triangles);
+        let mut heart = Heart {
+            normals,
+            frames,
+            triangles: mesh.triangles,
+            samples,
+            world_from_camera,
+            last,
+        };
+        // The winding decides the normals' side: keep the one the camera sees.
+        let maps = heart.render(last);
+        let rest = &heart.frames[0];
+        let graph = EdGraph::from_points(rest, GraphParams::default()).unwrap();
+        let bindings = graph.bind_all(rest);
+        let seen = |n: &[Vector3<f64>]| {
+            visible_points(
+                &graph,
+                rest,
+                n,
+                &bindings,
+                &world_from_camera,
+                &K,
+                &maps.0,
+                &maps.1,
+                6.0,
+                75.0,
+            )
+            .len()
+        };
+        let flipped: Vec<Vector3<f64>> = heart.normals.iter().map(|n| -n).collect();
+        if seen(&flipped) > seen(&heart.normals) {
+            heart.normals = flipped;
+        }
+        Some(heart)
+    }
+
+    /// Noise-free vertex and normal maps of frame `f`.
+    fn render(&self, f: usize) -> Maps {
+        let view = View {
+            fx: K.fx as f32,
+            fy: K.fy as f32,
+            cx: K.cx as f32,
+            cy: K.cy as f32,
+            width: K.width,
+            height: K.height,
+            camera_from_world: self.world_from_camera.inverse().cast::<f32>(),
+        };
+        let verts: Vec<[f32; 3]> = self.frames[f]
+            .iter()
+            .map(|p| [p.x as f32, p.y as f32, p.z as f32])
+            .collect();
+        let (mut raster, mut cam) = (Raster::default(), Vec::new());
+        rasterize(&view, &verts, &self.triangles, &mut cam, &mut raster);
+        scan_maps(&view, &raster, &cam, &self.triangles)
+    }
+
+    /// The model's points at frame `f` (the same barycentric weights on the moved triangles).
+    fn model_at(&self, f: usize) -> Vec<Vector3<f64>> {
+        interpolate(&self.samples, &self.frames[f])
+    }
+}
+
+fn interpolate(samples: &[([usize; 3], [f64; 3])], v: &[Vector3<f64>]) -> Vec<Vector3<f64>> {
+    samples
+        .iter()
+        .map(|(t, w)| v[t[0]] * w[0] + v[t[1]] * w[1] + v[t[2]] * w[2])
+        .collect()
+}
+
+#[derive(Clone, Copy)]
+struct Variant {
+    decoupled: bool,
+    /// Frames between solves (the last frame in one jump when it is `last`).
+    step: usize,
+    /// Exact 3D correspondences on every n-th seen mesh vertex (0: none): what matched features
+    /// give, without their noise.
+    corr_every: usize,
+}
+
+struct Outcome {
+    seen: f64,
+    seen_along_normal: f64,
+    unseen: f64,
+    motion_seen: f64,
+    motion_unseen: f64,
+    correspondences: usize,
+}
+
+fn run(h: &Heart, v: Variant, params: &SolverParams) -> Outcome {
+    let rest = &h.frames[0];
+    let nv = rest.len();
+    let points = h.model_at(0);
+    let normals: Vec<Vector3<f64>> = interpolate(&h.samples, &h.normals)
+        .iter()
+        .map(|n| n.normalize())
+        .collect();
+    let mut graph = EdGraph::from_points(rest, GraphParams::default()).unwrap();
+    let bindings = graph.bind_all(&points);
+    let cfw = h.world_from_camera.inverse();
+    let mut pose = h.world_from_camera;
+    let (mut batch, mut decoupled) = (Solver::default(), DecoupledSolver::default());
+    let mut subset = ModelSubset::default();
+    let mut correspondences = 0;
+    let mut f = 0;
+    while f < h.last {
+        f = (f + v.step).min(h.last);
+        let maps = h.render(f);
+        // The pipeline's visible set: the model as warped so far, against this frame's depth.
+        let seen = visible_points(
+            &graph, &points, &normals, &bindings, &pose, &K, &maps.0, &maps.1, 6.0, 75.0,
+        );
+        subset.gather(&seen, &points, &normals, &bindings);
+        let truth = &h.frames[f];
+        let corr: Vec<Correspondence> = if v.corr_every == 0 {
+            Vec::new()
+        } else {
+            seen.iter()
+                .map(|&i| i as usize)
+                .filter(|&i| i < nv)
+                .step_by(v.corr_every)
+                .map(|i| Correspondence {
+                    point: points[i],
+                    binding: bindings[i],
+                    target: (cfw * Point3::from(truth[i])).coords,
+                })
+                .collect()
+        };
+        correspondences += corr.len();
+        let problem = Problem {
+            model: subset.view(),
+            scan: Some(Scan {
+                intrinsics: K,
+                vertices: &maps.0,
+                normals: &maps.1,
+            }),
+            field: None,
+            correspondences: &corr,
+            pose_prior: h.world_from_camera,
+        };
+        if v.decoupled {
+            decoupled
+                .solve(
+                    &mut graph,
+                    &mut pose,
+                    &problem,
+                    params,
+                    &DecoupledParams::default(),
+                )
+                .unwrap();
+        } else {
+            let set = SolveSet::all(&graph, false);
+            batch
+                .solve(&mut graph, &mut pose, &problem, &set, params)
+                .unwrap();
+        }
+    }
+    let truth = &h.frames[h.last];
+    let maps = h.render(h.last);
+    // Seen: the true vertex lies on the last frame's scan (identity warp at the true positions).
+    let identity = EdGraph::from_points(rest, GraphParams::default()).unwrap();
+    let mut is_seen = vec![false; nv];
+    for i in visible_points(
+        &identity,
+        truth,
+        &h.normals,
+        &identity.bind_all(truth),
+        &h.world_from_camera,
+        &K,
+        &maps.0,
+        &maps.1,
+        0.5,
+        75.0,
+    ) {
+        is_seen[i as usize] = true;
+    }
+    assert!(
+        is_seen.iter().filter(|&&s| s).count() > 200,
+        "too few seen vertices"
+    );
+    let mean = |f: &dyn Fn(usize) -> f64, s: bool| {
+        let v: Vec<f64> = (0..nv).filter(|&i| is_seen[i] == s).map(f).collect();
+        v.iter().sum::<f64>() / v.len().max(1) as f64
     };
-    let problem = Problem {
-        model: l.view(),
-        scan: Some(Scan {
-            intrinsics: k_in,
-            vertices: &maps.0,
-            normals: &maps.1,
-        }),
-        field: None,
-        correspondences: &corr,
-        pose_prior: world_from_camera,
+    let moved = |i: usize| graph.warp_point(&points[i], &bindings[i]);
+    let tn = common::vertex_normals(truth, &h.triangles);
+    Outcome {
+        seen: mean(&|i| (moved(i) - truth[i]).norm(), true),
+        seen_along_normal: mean(&|i| tn[i].dot(&(moved(i) - truth[i])).abs(), true),
+        unseen: mean(&|i| (moved(i) - truth[i]).norm(), false),
+        motion_seen: mean(&|i| (truth[i] - rest[i]).norm(), true),
+        motion_unseen: mean(&|i| (truth[i] - rest[i]).norm(), false),
+        correspondences,
+    }
+}
+
+fn report(h: &Heart, name: &str, v: Variant, o: &Outcome) {
+    println!(
+        "heart 0 -> {} in steps of {}, {name}, {} correspondences: seen {:.3} mm ({:.3} along the normal; motion {:.3}), unseen {:.3} mm (motion {:.3})",
+        h.last,
+        v.step,
+        o.correspondences,
+        o.seen,
+        o.seen_along_normal,
+        o.motion_seen,
+        o.unseen,
+        o.motion_unseen
+    );
+}
+
+#[test]
+fn the_beating_heart_is_tracked_from_noise_free_depth() {
+    let Some(h) = Heart::load() else {
+        return;
+    };
+    // Noise-free depth needs less regularisation than the default (10, for stereo depth); the
+    // exact correspondences are trusted 30 times a depth sample (they are few: about 2 per node).
+    let mut params = SolverParams {
+        max_iterations: 15,
+        min_relative_decrease: 1e-7,
+        ..Default::default()
+    };
+    params.weights.reg = 1.0;
+    params.weights.corr = 30.0;
+    let depth_only = Variant {
+        decoupled: false,
+        step: 4,
+        corr_every: 0,
+    };
+    let with_corr = Variant {
+        corr_every: 10,
+        ..depth_only
+    };
+    let decoupled = Variant {
+        decoupled: true,
+        ..with_corr
+    };
+    let d = run(&h, depth_only, &params);
+    report(&h, "batch, depth only", depth_only, &d);
+    let b = run(&h, with_corr, &params);
+    report(&h, "batch", with_corr, &b);
+    let c = run(&h, decoupled, &params);
+    report(&h, "decoupled", decoupled, &c);
+    // Measured 0.164 (batch) and 0.178 mm (decoupled), within the issue's 0.2 mm where seen.
+    assert!(b.seen < 0.2, "batch: seen {}", b.seen);
+    assert!(c.seen < 0.2, "decoupled: seen {}", c.seen);
+    assert!(
+        c.seen < 1.1 * b.seen,
+        "decoupled {} vs batch {}",
+        c.seen,
+        b.seen
+    );
+    // From depth alone the surface is met (0.05 mm along the normal) but the tissue slides along
+    // it, which noise-free depth cannot see: measured 0.43 mm.
+    assert!(d.seen_along_normal < 0.1, "{}", d.seen_along_normal);
+    assert!(
+        d.seen < 0.25 * d.motion_seen,
+        "{} vs {}",
+        d.seen,
+        d.motion_seen
+    );
+    // Unseen parts follow the graph as rigidly as it allows: better than not moving them
+    // (measured 0.78 and 0.89 mm against 1.13 mm of motion; the issue's 0.5 mm is not met).
+    for o in [&b, &c] {
+        assert!(
+            o.unseen < 0.9 * o.motion_unseen,
+            "{} vs {}",
+            o.unseen,
+            o.motion_unseen
+        );
+    }
+}
+
+#[test]
+fn a_large_jump_is_not_pulled_onto_folds_of_the_surface() {
+    // Frame 0 straight to the frame of largest motion (2.7 mm where seen) in one solve, with the
+    // library's default association distance: points behind a fold of the heart must not be
+    // associated to the fold in front (with the old default of 10 mm: 2.1 mm error where seen,
+    // 9 mm unseen).
+    let Some(h) = Heart::load() else {
+        return;
     };
     let params = SolverParams {
         max_iterations: 15,
         min_relative_decrease: 1e-7,
         ..Default::default()
     };
-    let mut graph = graph0.clone();
-    let mut pose = world_from_camera;
-    if decoupled {
-        DecoupledSolver::default()
-            .solve(
-                &mut graph,
-                &mut pose,
-                &problem,
-                &params,
-                &DecoupledParams {
-                    level2_rings: 0,
-                    level2_iterations: 3,
-                    ..Default::default()
-                },
-            )
-            .unwrap();
-    } else {
-        let set = SolveSet::all(&graph, false);
-        Solver::default()
-            .solve(&mut graph, &mut pose, &problem, &set, &params)
-            .unwrap();
-    }
-    let mut is_seen = vec![false; rest.len()];
-    for &i in &seen {
-        is_seen[i as usize] = true;
-    }
-    let mean = |f: &dyn Fn(usize) -> f64, s: bool| {
-        let v: Vec<f64> = (0..rest.len())
-            .filter(|&i| is_seen[i] == s)
-            .map(f)
-            .collect();
-        (v.iter().sum::<f64>() / v.len().max(1) as f64, v.len())
+    let v = Variant {
+        decoupled: false,
+        step: h.last,
+        corr_every: 0,
     };
-    let err = |i: usize| (graph.warp_point(&rest[i], &bindings[i]) - truth[i]).norm();
-    let motion = |i: usize| (truth[i] - rest[i]).norm();
-    let (seen_mean, n_seen) = mean(&err, true);
-    let (unseen_mean, n_unseen) = mean(&err, false);
-    let out = Outcome {
-        seen_mean,
-        unseen_mean,
-        seen: n_seen,
-        unseen: n_unseen,
-        motion_seen: mean(&motion, true).0,
-        motion_unseen: mean(&motion, false).0,
-    };
-    let tn = common::vertex_normals(&truth, &mesh.triangles);
-    let normal_err = mean(
-        &|i: usize| {
-            tn[i]
-                .dot(&(graph.warp_point(&rest[i], &bindings[i]) - truth[i]))
-                .abs()
-        },
-        true,
-    )
-    .0;
-    println!(
-        "  seen error along the surface normal {normal_err:.3} mm, {} correspondences",
-        corr.len()
+    let o = run(&h, v, &params);
+    report(&h, "batch, depth only, one jump", v, &o);
+    assert!(
+        o.seen < 0.35 * o.motion_seen,
+        "{} vs {}",
+        o.seen,
+        o.motion_seen
     );
-    println!(
-        "heart frame 0 -> {k} ({}, corr every {corr_every}): seen {} vertices, error {:.3} mm (motion {:.3}); unseen {} vertices, error {:.3} mm (motion {:.3})",
-        if decoupled { "decoupled" } else { "batch" },
-        out.seen,
-        out.seen_mean,
-        out.motion_seen,
-        out.unseen,
-        out.unseen_mean,
-        out.motion_unseen
+    assert!(
+        o.unseen < 2.5 * o.motion_unseen,
+        "{} vs {}",
+        o.unseen,
+        o.motion_unseen
     );
-    Some(out)
-}
-
-#[test]
-fn the_beating_heart_is_recovered_from_noise_free_depth() {
-    let mut all = Vec::new();
-    for (decoupled, corr) in [(false, 0), (false, 10), (true, 10)] {
-        let Some(o) = run(decoupled, corr) else {
-            return;
-        };
-        all.push(o);
-    }
-    // Regression bounds of what stands today (measured: 0.57, 0.29 and 0.24 of the motion). The
-    // issue's targets (0.2 mm seen, 0.5 mm unseen) are NOT met yet, and the unseen part ends up
-    // farther from the truth than it started (printed above): see the note on issue 6.
-    let bounds = [0.65, 0.35, 0.3];
-    for (o, b) in all.iter().zip(bounds) {
-        assert!(
-            o.seen_mean < b * o.motion_seen,
-            "seen error {} vs motion {}",
-            o.seen_mean,
-            o.motion_seen
-        );
-        assert!(o.unseen_mean.is_finite());
-    }
 }
