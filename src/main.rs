@@ -350,7 +350,7 @@ fn run(command: Command) -> anyhow::Result<()> {
             };
             let rows = misslam::bench::ed_scaling(&p).map_err(anyhow::Error::msg)?;
             println!(
-                "{:>5} {:>7} {:>7} {:>8} {:>9} {:>4} {:>9} {:>9} {:>8} {:>9} {:>9}",
+                "{:>5} {:>7} {:>7} {:>8} {:>9} {:>4} {:>9} {:>9} {:>9} {:>8} {:>9} {:>9} {:>9}",
                 "frame",
                 "nodes",
                 "visible",
@@ -359,13 +359,15 @@ fn run(command: Command) -> anyhow::Result<()> {
                 "it",
                 "ms/it",
                 "batch mm",
+                "seen mm",
                 "dec n",
                 "dec ms",
-                "dec mm"
+                "dec mm",
+                "seen mm"
             );
             for r in &rows {
                 println!(
-                    "{:>5} {:>7} {:>7} {:>8} {:>9.1} {:>4} {:>9.1} {:>9.3} {:>8} {:>9.1} {:>9.3}",
+                    "{:>5} {:>7} {:>7} {:>8} {:>9.1} {:>4} {:>9.1} {:>9.3} {:>9.3} {:>8} {:>9.1} {:>9.3} {:>9.3}",
                     r.frame,
                     r.total_nodes,
                     r.visible_points,
@@ -374,9 +376,11 @@ fn run(command: Command) -> anyhow::Result<()> {
                     r.batch_iterations,
                     (r.batch_assemble_ms + r.batch_factor_ms) / r.batch_iterations.max(1) as f64,
                     r.batch_err_mm,
+                    r.batch_seen_err_mm,
                     r.decoupled_solved,
                     r.decoupled_ms,
-                    r.decoupled_err_mm
+                    r.decoupled_err_mm,
+                    r.decoupled_seen_err_mm
                 );
             }
             if let Some(path) = out {
