@@ -2,7 +2,7 @@
 # Regenerates docs/viewer.jpg, the README's picture of a run in the Rerun viewer: 60 frames of
 # graphs/mis_slam.toml on the built-in phantom, recorded, trimmed to the entities shown, opened with
 # a fixed layout and captured by the viewer itself (`--screenshot-to`). Headless machines need
-# Xvfb and a Vulkan driver (Debian: xvfb mesa-vulkan-drivers libvulkan1).
+# Xvfb and a Vulkan driver (Debian: xvfb mesa-vulkan-drivers libvulkan1), and ImageMagick.
 #
 #   docs/viewer_screenshot.sh [VENV]   # VENV: a venv with rerun-sdk==0.36.3 (default .venv)
 set -euo pipefail
