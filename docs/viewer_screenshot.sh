@@ -9,7 +9,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 venv=${1:-.venv}
 work=$(mktemp -d)
-trap 'rm -rf "$work"; [ -n "${xvfb:-}" ] && kill "$xvfb" 2>/dev/null || true' EXIT
+trap 'kill ${warp:-} ${xvfb:-} 2>/dev/null; rm -rf "$work"' EXIT
 cargo run --quiet -- run graphs/mis_slam.toml --quiet --frames 60 --out "$work/out" \
     --rerun "save:$work/full.rrd"
 # Only what the layout shows: the viewer then loads every frame before it takes the picture.
@@ -57,14 +57,17 @@ rrb.Blueprint(
     collapse_panels=True,
 ).save("misslam", sys.argv[1])
 PY
+warp=""
 if [ -z "${DISPLAY:-}" ]; then
     Xvfb :93 -screen 0 1600x1000x24 >/dev/null 2>&1 &
     xvfb=$!
     export DISPLAY=:93
+    mkdir -p "$work/xdg" && chmod 700 "$work/xdg"
+    export XDG_RUNTIME_DIR="$work/xdg"
     sleep 2
-fi
-# Keep the pointer in the bottom-right corner, where it hovers over nothing.
-python3 -c "
+    # On this private screen only: keep the pointer in the bottom-right corner, where it hovers
+    # over nothing (the window takes the whole screen, and a hover tooltip would be captured).
+    python3 -c "
 import ctypes, time
 x = ctypes.CDLL('libX11.so.6')
 x.XOpenDisplay.restype = ctypes.c_void_p
@@ -76,11 +79,16 @@ for _ in range(240):
     x.XFlush(d)
     time.sleep(0.25)
 " &
-warp=$!
-mkdir -p "$work/xdg" && chmod 700 "$work/xdg"
-XDG_RUNTIME_DIR="$work/xdg" "$venv/bin/rerun" "$work/shown.rrd" "$work/layout.rbl" \
-    --window-size 1600x1000 --screenshot-to "$work/shot.png" >/dev/null 2>&1 || true
-kill "$warp" 2>/dev/null || true
-test -s "$work/shot.png"
+    warp=$!
+fi
+# The viewer exits non-zero after `--screenshot-to`; the picture's presence is the check.
+"$venv/bin/rerun" "$work/shown.rrd" "$work/layout.rbl" \
+    --window-size 1600x1000 --screenshot-to "$work/shot.png" >"$work/viewer.log" 2>&1 || true
+[ -z "$warp" ] || kill "$warp" 2>/dev/null || true
+if ! [ -s "$work/shot.png" ]; then
+    echo "the viewer wrote no picture; its log:" >&2
+    cat "$work/viewer.log" >&2
+    exit 1
+fi
 convert "$work/shot.png" -resize 1200x -quality 88 docs/viewer.jpg
 echo "docs/viewer.jpg"
