@@ -250,6 +250,9 @@ pub struct EdScalingParams {
     pub point_step_mm: f64,
     /// Solver iterations per frame.
     pub iterations: usize,
+    /// Batch: factorise all 12 unknowns of every node (no elimination of the data-free nodes'
+    /// affine parts), to time what that elimination saves.
+    pub full_factorisation: bool,
 }
 
 impl Default for EdScalingParams {
@@ -260,6 +263,7 @@ impl Default for EdScalingParams {
             spacing_mm: 5.0,
             point_step_mm: 1.5,
             iterations: 3,
+            full_factorisation: false,
         }
     }
 }
@@ -308,6 +312,7 @@ pub fn ed_scaling(p: &EdScalingParams) -> Result<Vec<EdScalingRow>, String> {
     let mut batch_graph: Option<EdGraph> = None;
     let mut dec_graph: Option<EdGraph> = None;
     let mut batch = Solver::default();
+    batch.set_full_factorisation(p.full_factorisation);
     let mut dec = DecoupledSolver::default();
     let params = SolverParams {
         max_iterations: p.iterations,

@@ -230,6 +230,10 @@ enum BenchCommand {
         /// Solver iterations per frame.
         #[arg(long, default_value_t = 3)]
         iterations: usize,
+        /// Batch: factorise all 12 unknowns of every node instead of first eliminating the
+        /// affine parts of the nodes without data (same solution; times what that saves).
+        #[arg(long)]
+        full_factorisation: bool,
         /// Write the rows as JSON here (fields documented in ARCHITECTURE.md, "Benchmarks").
         #[arg(long)]
         out: Option<PathBuf>,
@@ -338,6 +342,7 @@ fn run(command: Command) -> anyhow::Result<()> {
                     advance_mm,
                     spacing_mm,
                     iterations,
+                    full_factorisation,
                     out,
                 },
         } => {
@@ -346,6 +351,7 @@ fn run(command: Command) -> anyhow::Result<()> {
                 advance_mm,
                 spacing_mm,
                 iterations,
+                full_factorisation,
                 ..Default::default()
             };
             let rows = misslam::bench::ed_scaling(&p).map_err(anyhow::Error::msg)?;

@@ -86,6 +86,8 @@ impl SolveSet {
 #[derive(Default)]
 pub struct Solver {
     system: BlockSystem,
+    /// Factorise every node's 12 unknowns (no elimination of the data-free affine parts).
+    full_factorisation: bool,
     /// The pass at the current state (warped points, association, data cost) ...
     cur: Pass,
     /// ... and at a candidate step's state.
@@ -144,6 +146,18 @@ impl Solver {
     /// Symbolic factorisations computed so far.
     pub fn symbolic_builds(&self) -> usize {
         self.system.symbolic_builds
+    }
+
+    /// With `true`, the sparse Cholesky factorises all 12 unknowns of every node instead of first
+    /// eliminating the affine parts of the nodes no data term binds (see [`crate::system`]). The
+    /// solution is the same to rounding; this exists to verify that and to time the difference.
+    pub fn set_full_factorisation(&mut self, full: bool) {
+        self.full_factorisation = full;
+    }
+
+    /// Unknowns the sparse factorisation saw in the last solve.
+    pub fn factor_dim(&self) -> usize {
+        self.system.factor_dim()
     }
 
     /// The terms other than the projective and field data on the model points (E_rot, E_reg,
@@ -212,8 +226,13 @@ impl Solver {
                 pairs.push((j.min(k), j.max(k)));
             }
         }
+        // Nodes some data term binds: their A couples to other nodes' A and to the pose.
+        let mut has_data = vec![false; graph.len()];
         if set.data {
             let mut add = |b: &Binding| {
+                for &x in &b.nodes[..b.len as usize] {
+                    has_data[x as usize] = true;
+                }
                 for a in 0..b.len as usize {
                     for c in a + 1..b.len as usize {
                         let (x, y) = (b.nodes[a], b.nodes[c]);
@@ -232,10 +251,34 @@ impl Solver {
         }
         pairs.par_sort_unstable();
         pairs.dedup();
+        // The rest have their A eliminated before the sparse factorisation (see
+        // [`crate::system`]): it reaches their own t and, through E_reg, the t of their edges' ends.
+        let eliminated: Vec<u32> = set
+            .free
+            .iter()
+            .copied()
+            .filter(|&j| !has_data[j as usize] && !self.full_factorisation)
+            .collect();
+        let mut links: Vec<(u32, u32)> = set
+            .reg_edges
+            .iter()
+            .copied()
+            .filter(|&(j, k)| {
+                j != k
+                    && is_free[j as usize]
+                    && is_free[k as usize]
+                    && !has_data[j as usize]
+                    && !self.full_factorisation
+            })
+            .collect();
+        links.sort_unstable();
+        links.dedup();
         PatternKey {
             free: set.free.clone(),
             pairs,
             pose: set.pose,
+            eliminated,
+            links,
         }
     }
 

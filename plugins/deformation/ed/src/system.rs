@@ -1,12 +1,23 @@
 //! Block-sparse normal equations J^T W J dx = -J^T W r with 12x12 blocks (one per node's [A|t]) and
-//! an optional 6-wide pose block, assembled straight into block storage, then copied into the upper
-//! triangle of a scalar CSC matrix whose pattern is fixed per block pattern, and factorised by faer's
-//! sparse Cholesky.
+//! an optional 6-wide pose block, assembled straight into block storage, reduced, and factorised by
+//! faer's sparse Cholesky.
 //!
-//! The fill-reducing ordering is computed on the block graph (nodes, not scalars: 144 times fewer
-//! entries) with faer's AMD, nodes are renumbered in that order, and the pose block goes last (an
-//! arrowhead, no fill). The symbolic factorisation is reused for as long as the set of solved nodes
-//! and the block pattern stay the same (across iterations, and across frames on a static graph).
+//! **Reduction.** A node that no data term touches (no model point, field sample or correspondence
+//! is bound to it) has its 9 affine unknowns A coupled only to its own translation and to the
+//! translations of the nodes its regularisation edges point to: E_rot involves A alone, and E_reg
+//! of edge (j, k) is `A_j (g_k - g_j) + g_j + t_j - g_k - t_k`. Those A blocks are eliminated first,
+//! node by node, by a dense 9x9 Cholesky and a Schur complement onto the translations of
+//! `{j} + out(j)`; the sparse factorisation then sees 3 unknowns for such a node instead of 12
+//! (12 for a node with data), and its A is recovered by back-substitution. This is exact (the same
+//! solution as factorising the whole system, to rounding): it is the elimination order "A of
+//! data-free nodes first", which a block ordering over 12-wide nodes cannot express. In a map
+//! that grows while the camera sees a bounded region most nodes are data-free.
+//!
+//! The fill-reducing ordering is computed on the reduced block graph (nodes, not scalars) with
+//! faer's AMD, nodes are renumbered in that order, and the pose block goes last (an arrowhead, no
+//! fill). The symbolic factorisation is reused for as long as the set of solved nodes, the
+//! eliminated nodes and the block pattern stay the same (across iterations, and across frames on a
+//! static graph).
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::sparse::linalg::cholesky::{
@@ -24,6 +35,30 @@ pub struct PatternKey {
     pub pairs: Vec<(u32, u32)>,
     /// Whether the pose is among the unknowns.
     pub pose: bool,
+    /// Solved nodes whose affine part is eliminated before the sparse factorisation (no data term
+    /// binds them), ascending.
+    pub eliminated: Vec<u32>,
+    /// Directed couplings (j, k), j eliminated, k solved, j != k: E_reg edges whose A_j term
+    /// reaches t_k. Sorted, unique. Each (j, k) must also be in `pairs`.
+    pub links: Vec<(u32, u32)>,
+}
+
+/// Kept (factorised) unknowns of a node with data, in its 12-layout `[A row 0 | t0, ...]`:
+/// the 9 affine entries, then the translation.
+const KEEP_FULL: [usize; 12] = [0, 1, 2, 4, 5, 6, 8, 9, 10, 3, 7, 11];
+/// Kept unknowns of an eliminated node: its translation.
+const KEEP_T: [usize; 3] = [3, 7, 11];
+/// The affine entries of a node in its 12-layout.
+const AFF: [usize; 9] = [0, 1, 2, 4, 5, 6, 8, 9, 10];
+
+/// Upper-triangle index of entry (r, c) of a symmetric 12x12 stored column-major.
+#[inline(always)]
+fn sym12(r: usize, c: usize) -> usize {
+    if r <= c {
+        c * 12 + r
+    } else {
+        r * 12 + c
+    }
 }
 
 /// The assembled system and its factorisation workspace.
@@ -42,6 +77,31 @@ pub struct BlockSystem {
     pub pose_block: [f64; 36],
     /// Gradient J^T W r, block order (12 per block, then 6 for the pose).
     pub grad: Vec<f64>,
+    /// Per slot: whether its affine part is eliminated.
+    elim_slot: Vec<bool>,
+    /// Per slot: offset of its kept unknowns in the reduced system (and the total at the end).
+    koff: Vec<usize>,
+    /// Per original block: offset of its rows within its reduced column.
+    blk_rowoff: Vec<u32>,
+    /// Eliminated slots; per eliminated slot e, `t_start[e]..t_start[e + 1]` indexes `t_slots`
+    /// (its own slot first, then the slots its A reaches) and `t_blk` (the original block holding
+    /// that coupling, and whether it is stored transposed, i.e. the eliminated slot is its column).
+    elim: Vec<u32>,
+    t_start: Vec<usize>,
+    t_slots: Vec<u32>,
+    t_blk: Vec<(u32, bool)>,
+    /// Per eliminated slot e, from `pair_start[e]`: |T|^2 row offsets of reduced block
+    /// (T[a], T[b]) in its column (meaningful where slot T[a] <= slot T[b]).
+    pair_start: Vec<usize>,
+    pair_rowoff: Vec<u32>,
+    /// Per eliminated slot: the 9x9 Cholesky factor of its damped affine block (row-major lower),
+    /// W = L^-1 C (9 x 3|T|, row-major, from `w_start`) and w = L^-1 g_A.
+    chol: Vec<[f64; 81]>,
+    w_start: Vec<usize>,
+    w_mat: Vec<f64>,
+    w_vec: Vec<[f64; 9]>,
+    /// Reduced right-hand side and solution.
+    rhs: Vec<f64>,
     col_ptr: Vec<usize>,
     row_idx: Vec<usize>,
     values: Vec<f64>,
@@ -65,6 +125,20 @@ impl Default for BlockSystem {
             pose_cross: Vec::new(),
             pose_block: [0.0; 36],
             grad: Vec::new(),
+            elim_slot: Vec::new(),
+            koff: vec![0],
+            blk_rowoff: Vec::new(),
+            elim: Vec::new(),
+            t_start: vec![0],
+            t_slots: Vec::new(),
+            t_blk: Vec::new(),
+            pair_start: Vec::new(),
+            pair_rowoff: Vec::new(),
+            chol: Vec::new(),
+            w_start: Vec::new(),
+            w_mat: Vec::new(),
+            w_vec: Vec::new(),
+            rhs: Vec::new(),
             col_ptr: Vec::new(),
             row_idx: Vec::new(),
             values: Vec::new(),
@@ -81,6 +155,12 @@ impl BlockSystem {
     /// Number of scalar unknowns.
     pub fn dim(&self) -> usize {
         12 * self.nb + if self.key.pose { 6 } else { 0 }
+    }
+
+    /// Number of unknowns the sparse factorisation sees (after the data-free nodes' affine parts
+    /// are eliminated).
+    pub fn factor_dim(&self) -> usize {
+        self.rhs.len()
     }
 
     /// Number of solved node blocks.
@@ -106,15 +186,51 @@ impl BlockSystem {
         for (i, &j) in key.free.iter().enumerate() {
             local[j as usize] = i as u32;
         }
-        // Block graph (upper with diagonal) in local numbering, for AMD.
+        let loc = |node: u32| -> Result<usize, String> {
+            match local.get(node as usize) {
+                Some(&l) if l != u32::MAX => Ok(l as usize),
+                _ => Err(format!(
+                    "node {node} of the pattern is not among the solved nodes"
+                )),
+            }
+        };
+        let mut elim_local = vec![false; nf];
+        for &j in &key.eliminated {
+            elim_local[loc(j)?] = true;
+        }
+        // Each eliminated node's reach: itself, then the nodes its A couples to (local ids).
+        let mut reach: Vec<Vec<usize>> = vec![Vec::new(); nf];
+        for &(j, k) in &key.links {
+            let (lj, lk) = (loc(j)?, loc(k)?);
+            if !elim_local[lj] || lj == lk {
+                return Err(format!(
+                    "link ({j}, {k}) does not start at an eliminated node"
+                ));
+            }
+            reach[lj].push(lk);
+        }
+        // Reduced block graph (upper with diagonal) in local numbering: the original pairs and,
+        // per eliminated node, the clique of its reach (the Schur complement's fill).
         let mut adj: Vec<Vec<usize>> = (0..nf).map(|i| vec![i]).collect();
+        let mut link = |a: usize, b: usize| {
+            if a != b {
+                adj[a.max(b)].push(a.min(b));
+            }
+        };
         for &(a, b) in &key.pairs {
             let (la, lb) = (local[a as usize], local[b as usize]);
             if la == u32::MAX || lb == u32::MAX {
                 continue;
             }
-            let (lo, hi) = if la < lb { (la, lb) } else { (lb, la) };
-            adj[hi as usize].push(lo as usize);
+            link(la as usize, lb as usize);
+        }
+        for (lj, r) in reach.iter().enumerate() {
+            for (x, &a) in r.iter().enumerate() {
+                link(lj, a);
+                for &b in &r[x + 1..] {
+                    link(a, b);
+                }
+            }
         }
         let mut cp = vec![0usize; nf + 1];
         let mut ri = Vec::new();
@@ -145,46 +261,134 @@ impl BlockSystem {
         for (new, &old_local) in perm.iter().enumerate() {
             slot[key.free[old_local] as usize] = new as u32;
         }
-        // Upper block pattern in slot numbering, per column.
-        let mut cols: Vec<Vec<u32>> = (0..nf).map(|i| vec![i as u32]).collect();
-        for &(a, b) in &key.pairs {
+        let elim_slot: Vec<bool> = perm.iter().map(|&l| elim_local[l]).collect();
+        let size = |s: usize| if elim_slot[s] { 3 } else { 12 };
+        let mut koff = vec![0usize; nf + 1];
+        for s in 0..nf {
+            koff[s + 1] = koff[s] + size(s);
+        }
+        // Original upper block pattern (what assembly writes) in slot numbering, per column.
+        let upper = |pairs: &mut dyn Iterator<Item = (u32, u32)>| {
+            let mut cols: Vec<Vec<u32>> = (0..nf).map(|i| vec![i as u32]).collect();
+            for (sa, sb) in pairs {
+                if sa != sb {
+                    cols[sa.max(sb) as usize].push(sa.min(sb));
+                }
+            }
+            let mut start = vec![0usize; nf + 1];
+            let mut rows = Vec::new();
+            for (c, list) in cols.iter_mut().enumerate() {
+                list.sort_unstable();
+                list.dedup();
+                rows.extend_from_slice(list);
+                start[c + 1] = rows.len();
+            }
+            (start, rows)
+        };
+        let slot_pairs = key.pairs.iter().filter_map(|&(a, b)| {
             let (sa, sb) = (slot[a as usize], slot[b as usize]);
-            if sa == u32::MAX || sb == u32::MAX || sa == sb {
+            (sa != u32::MAX && sb != u32::MAX).then_some((sa, sb))
+        });
+        let (col_start, rows) = upper(&mut slot_pairs.clone());
+        // Reduced pattern: the original pairs and the cliques.
+        let mut clique = Vec::new();
+        for (lj, r) in reach.iter().enumerate() {
+            let sj = perm_inv[lj] as u32;
+            for (x, &a) in r.iter().enumerate() {
+                let sa = perm_inv[a] as u32;
+                clique.push((sj, sa));
+                for &b in &r[x + 1..] {
+                    clique.push((sa, perm_inv[b] as u32));
+                }
+            }
+        }
+        let (rcol_start, rrows) = upper(&mut slot_pairs.chain(clique.iter().copied()));
+        // Row offset of reduced block (bi, bj), bi <= bj, within column bj.
+        let mut rowoff = vec![0u32; rrows.len()];
+        for bj in 0..nf {
+            let mut off = 0u32;
+            for p in rcol_start[bj]..rcol_start[bj + 1] {
+                rowoff[p] = off;
+                off += size(rrows[p] as usize) as u32;
+            }
+        }
+        let rowoff_of = |bi: u32, bj: u32| -> Result<u32, String> {
+            let (lo, hi) = (bi.min(bj), bi.max(bj));
+            let list = &rrows[rcol_start[hi as usize]..rcol_start[hi as usize + 1]];
+            list.binary_search(&lo)
+                .map(|p| rowoff[rcol_start[hi as usize] + p])
+                .map_err(|_| format!("reduced block ({lo}, {hi}) is missing"))
+        };
+        let find_orig = |bi: u32, bj: u32| -> Result<u32, String> {
+            let (lo, hi) = (bi.min(bj), bi.max(bj));
+            let list = &rows[col_start[hi as usize]..col_start[hi as usize + 1]];
+            list.binary_search(&lo)
+                .map(|p| (col_start[hi as usize] + p) as u32)
+                .map_err(|_| {
+                    format!("an eliminated node's link ({lo}, {hi}) is not among the pairs")
+                })
+        };
+        let mut blk_rowoff = vec![0u32; rows.len()];
+        for bj in 0..nf {
+            for p in col_start[bj]..col_start[bj + 1] {
+                blk_rowoff[p] = rowoff_of(rows[p], bj as u32)?;
+            }
+        }
+        // Eliminated slots: their reach in slots, the blocks holding the couplings, and the
+        // reduced blocks their Schur complement lands in.
+        let (mut elim, mut t_start, mut t_slots, mut t_blk) =
+            (Vec::new(), vec![0usize], Vec::new(), Vec::new());
+        let (mut pair_start, mut pair_rowoff, mut w_start) = (Vec::new(), Vec::new(), Vec::new());
+        let mut w_len = 0;
+        for s in 0..nf {
+            if !elim_slot[s] {
                 continue;
             }
-            let (lo, hi) = if sa < sb { (sa, sb) } else { (sb, sa) };
-            cols[hi as usize].push(lo);
+            let lj = perm[s];
+            elim.push(s as u32);
+            let first = t_slots.len();
+            t_slots.push(s as u32);
+            t_blk.push((find_orig(s as u32, s as u32)?, false));
+            for &a in &reach[lj] {
+                let sa = perm_inv[a] as u32;
+                t_slots.push(sa);
+                t_blk.push((find_orig(s as u32, sa)?, sa < s as u32));
+            }
+            t_start.push(t_slots.len());
+            let t = &t_slots[first..];
+            pair_start.push(pair_rowoff.len());
+            for &a in t {
+                for &b in t {
+                    pair_rowoff.push(rowoff_of(a, b)?);
+                }
+            }
+            w_start.push(w_len);
+            w_len += 9 * 3 * t.len();
         }
-        let mut col_start = vec![0usize; nf + 1];
-        let mut rows = Vec::new();
-        for (c, list) in cols.iter_mut().enumerate() {
-            list.sort_unstable();
-            list.dedup();
-            rows.extend_from_slice(list);
-            col_start[c + 1] = rows.len();
-        }
-        // Scalar CSC, upper triangle.
+        // Scalar CSC of the reduced system, upper triangle.
         let pose = key.pose;
-        let n = 12 * nf + if pose { 6 } else { 0 };
+        let nk = koff[nf];
+        let n = nk + if pose { 6 } else { 0 };
         let mut col_ptr = Vec::with_capacity(n + 1);
         let mut row_idx = Vec::new();
         let mut diag_pos = Vec::with_capacity(n);
         col_ptr.push(0);
         for bj in 0..nf {
-            let list = &rows[col_start[bj]..col_start[bj + 1]];
-            for cc in 0..12 {
+            let list = &rrows[rcol_start[bj]..rcol_start[bj + 1]];
+            for cc in 0..size(bj) {
                 for &bi in &list[..list.len() - 1] {
-                    row_idx.extend((0..12).map(|r| 12 * bi as usize + r));
+                    let b0 = koff[bi as usize];
+                    row_idx.extend(b0..b0 + size(bi as usize));
                 }
-                row_idx.extend((0..=cc).map(|r| 12 * bj + r));
+                row_idx.extend(koff[bj]..=koff[bj] + cc);
                 diag_pos.push(row_idx.len() - 1);
                 col_ptr.push(row_idx.len());
             }
         }
         if pose {
             for pc in 0..6 {
-                row_idx.extend(0..12 * nf);
-                row_idx.extend((0..=pc).map(|r| 12 * nf + r));
+                row_idx.extend(0..nk);
+                row_idx.extend((0..=pc).map(|r| nk + r));
                 diag_pos.push(row_idx.len() - 1);
                 col_ptr.push(row_idx.len());
             }
@@ -220,8 +424,22 @@ impl BlockSystem {
         } else {
             Vec::new()
         };
-        self.grad = vec![0.0; n];
+        self.grad = vec![0.0; 12 * nf + if pose { 6 } else { 0 }];
         self.values = vec![0.0; row_idx.len()];
+        self.rhs = vec![0.0; n];
+        self.chol = vec![[0.0; 81]; elim.len()];
+        self.w_vec = vec![[0.0; 9]; elim.len()];
+        self.w_mat = vec![0.0; w_len];
+        self.elim_slot = elim_slot;
+        self.koff = koff;
+        self.blk_rowoff = blk_rowoff;
+        self.elim = elim;
+        self.t_start = t_start;
+        self.t_slots = t_slots;
+        self.t_blk = t_blk;
+        self.pair_start = pair_start;
+        self.pair_rowoff = pair_rowoff;
+        self.w_start = w_start;
         self.col_start = col_start;
         self.rows = rows;
         self.col_ptr = col_ptr;
@@ -367,44 +585,134 @@ impl BlockSystem {
         if n == 0 {
             return Ok(true);
         }
-        // Copy blocks into the scalar CSC values (same order as the pattern built above).
-        let mut k = 0;
+        let damp = |d: f64| d + lambda * (d.abs() + ridge) + 1e-12 * ridge;
         let nf = self.nb;
+        let nk = self.koff[nf];
+        let kept = |e: bool| -> &'static [usize] {
+            if e {
+                &KEEP_T
+            } else {
+                &KEEP_FULL
+            }
+        };
+        // The kept parts of the assembled blocks, into the reduced CSC values.
+        self.values.fill(0.0);
         for bj in 0..nf {
-            let (c0, c1) = (self.col_start[bj], self.col_start[bj + 1]);
-            for cc in 0..12 {
-                for bidx in c0..c1 - 1 {
-                    self.values[k..k + 12]
-                        .copy_from_slice(&self.blocks[bidx][cc * 12..cc * 12 + 12]);
-                    k += 12;
+            let kj = kept(self.elim_slot[bj]);
+            let c0 = self.koff[bj];
+            for idx in self.col_start[bj]..self.col_start[bj + 1] {
+                let bi = self.rows[idx] as usize;
+                let ki = kept(self.elim_slot[bi]);
+                let blk = &self.blocks[idx];
+                let ro = self.blk_rowoff[idx] as usize;
+                for (kc, &oc) in kj.iter().enumerate() {
+                    let base = self.col_ptr[c0 + kc] + ro;
+                    if bi == bj {
+                        for (kr, &or) in ki[..=kc].iter().enumerate() {
+                            self.values[base + kr] = blk[sym12(or, oc)];
+                        }
+                    } else {
+                        for (kr, &or) in ki.iter().enumerate() {
+                            self.values[base + kr] = blk[oc * 12 + or];
+                        }
+                    }
                 }
-                let d = &self.blocks[c1 - 1];
-                self.values[k..k + cc + 1].copy_from_slice(&d[cc * 12..cc * 12 + cc + 1]);
-                k += cc + 1;
+            }
+            for (kr, &or) in kj.iter().enumerate() {
+                self.rhs[c0 + kr] = -self.grad[12 * bj + or];
             }
         }
         if self.key.pose {
             for pc in 0..6 {
-                for cross in &self.pose_cross {
-                    self.values[k..k + 12].copy_from_slice(&cross[pc * 12..pc * 12 + 12]);
-                    k += 12;
+                let base = self.col_ptr[nk + pc];
+                for (s, cross) in self.pose_cross.iter().enumerate() {
+                    for (kr, &or) in kept(self.elim_slot[s]).iter().enumerate() {
+                        self.values[base + self.koff[s] + kr] = cross[pc * 12 + or];
+                    }
                 }
-                self.values[k..k + pc + 1]
-                    .copy_from_slice(&self.pose_block[pc * 6..pc * 6 + pc + 1]);
-                k += pc + 1;
+                for r in 0..=pc {
+                    self.values[base + nk + r] = self.pose_block[pc * 6 + r];
+                }
+                self.rhs[nk + pc] = -self.grad[12 * nf + pc];
             }
         }
-        debug_assert_eq!(k, self.values.len());
         for &p in &self.diag_pos {
-            let d = self.values[p];
-            self.values[p] = d + lambda * (d.abs() + ridge) + 1e-12 * ridge;
+            self.values[p] = damp(self.values[p]);
+        }
+        // Eliminate the affine parts of the data-free nodes: S -= W^T W, rhs += W^T w with
+        // L L^T = H_AA (damped), W = L^-1 C, w = L^-1 g_A.
+        for (e, &s) in self.elim.iter().enumerate() {
+            let s = s as usize;
+            let (t0, t1) = (self.t_start[e], self.t_start[e + 1]);
+            let nt = t1 - t0;
+            let diag = &self.blocks[self.t_blk[t0].0 as usize];
+            let l = &mut self.chol[e];
+            for r in 0..9 {
+                for c in 0..=r {
+                    let v = diag[sym12(AFF[r], AFF[c])];
+                    l[r * 9 + c] = if r == c { damp(v) } else { v };
+                }
+            }
+            if !cholesky9(l) {
+                return Ok(false);
+            }
+            let wm = &mut self.w_mat[self.w_start[e]..self.w_start[e] + 27 * nt];
+            let width = 3 * nt;
+            for (q, &(idx, transposed)) in self.t_blk[t0..t1].iter().enumerate() {
+                let blk = &self.blocks[idx as usize];
+                for r in 0..9 {
+                    for (c, &tc) in KEEP_T.iter().enumerate() {
+                        wm[r * width + 3 * q + c] = if q == 0 {
+                            blk[sym12(AFF[r], tc)]
+                        } else if transposed {
+                            blk[AFF[r] * 12 + tc]
+                        } else {
+                            blk[tc * 12 + AFF[r]]
+                        };
+                    }
+                }
+            }
+            let wv = &mut self.w_vec[e];
+            for r in 0..9 {
+                wv[r] = self.grad[12 * s + AFF[r]];
+            }
+            forward9(l, wv, 1);
+            forward9(l, wm, width);
+            let t = &self.t_slots[t0..t1];
+            let pr = &self.pair_rowoff[self.pair_start[e]..self.pair_start[e] + nt * nt];
+            for (qb, &sb) in t.iter().enumerate() {
+                let cb = self.koff[sb as usize] + if self.elim_slot[sb as usize] { 0 } else { 9 };
+                for (qa, &sa) in t.iter().enumerate() {
+                    if sa > sb {
+                        continue;
+                    }
+                    let ra = if self.elim_slot[sa as usize] { 0 } else { 9 };
+                    let ro = pr[qa * nt + qb] as usize + ra;
+                    for c in 0..3 {
+                        let base = self.col_ptr[cb + c] + ro;
+                        let rmax = if sa == sb { c } else { 2 };
+                        for r in 0..=rmax {
+                            let mut acc = 0.0;
+                            for k in 0..9 {
+                                acc += wm[k * width + 3 * qa + r] * wm[k * width + 3 * qb + c];
+                            }
+                            self.values[base + r] -= acc;
+                        }
+                    }
+                }
+                for c in 0..3 {
+                    let acc: f64 = (0..9).map(|k| wm[k * width + 3 * qb + c] * wv[k]).sum();
+                    self.rhs[cb + c] += acc;
+                }
+            }
         }
         let symbolic = self
             .symbolic
             .as_ref()
             .ok_or("the system was not prepared")?;
+        let nr = self.rhs.len();
         let a = SparseColMatRef::new(
-            SymbolicSparseColMatRef::new_checked(n, n, &self.col_ptr, None, &self.row_idx),
+            SymbolicSparseColMatRef::new_checked(nr, nr, &self.col_ptr, None, &self.row_idx),
             &self.values,
         );
         let stack = MemStack::new(&mut self.scratch);
@@ -420,16 +728,281 @@ impl BlockSystem {
             Ok(l) => l,
             Err(_) => return Ok(false),
         };
-        for (x, g) in dx.iter_mut().zip(&self.grad) {
-            *x = -g;
-        }
-        let rhs = faer::MatMut::from_column_major_slice_mut(dx.as_mut_slice(), n, 1);
+        let rhs = faer::MatMut::from_column_major_slice_mut(self.rhs.as_mut_slice(), nr, 1);
         llt.solve_in_place_with_conj(
             faer::Conj::No,
             rhs,
             Par::Seq,
             MemStack::new(&mut self.scratch),
         );
+        // Back to the 12-layout: kept unknowns directly, eliminated ones by back-substitution
+        // dA = L^-T (-w - W dK).
+        for s in 0..nf {
+            for (kr, &or) in kept(self.elim_slot[s]).iter().enumerate() {
+                dx[12 * s + or] = self.rhs[self.koff[s] + kr];
+            }
+        }
+        if self.key.pose {
+            dx[12 * nf..].copy_from_slice(&self.rhs[nk..]);
+        }
+        for (e, &s) in self.elim.iter().enumerate() {
+            let (t0, t1) = (self.t_start[e], self.t_start[e + 1]);
+            let width = 3 * (t1 - t0);
+            let wm = &self.w_mat[self.w_start[e]..self.w_start[e] + 9 * width];
+            let mut y = [0.0; 9];
+            for (r, yr) in y.iter_mut().enumerate() {
+                let mut acc = -self.w_vec[e][r];
+                for (q, &sq) in self.t_slots[t0..t1].iter().enumerate() {
+                    let b =
+                        self.koff[sq as usize] + if self.elim_slot[sq as usize] { 0 } else { 9 };
+                    for c in 0..3 {
+                        acc -= wm[r * width + 3 * q + c] * self.rhs[b + c];
+                    }
+                }
+                *yr = acc;
+            }
+            backward9(&self.chol[e], &mut y);
+            for r in 0..9 {
+                dx[12 * s as usize + AFF[r]] = y[r];
+            }
+        }
         Ok(dx.iter().all(|x| x.is_finite()))
+    }
+}
+
+/// In-place Cholesky of a symmetric positive definite 9x9 (row-major, lower triangle read and
+/// written). False when it is not positive definite.
+fn cholesky9(a: &mut [f64; 81]) -> bool {
+    for j in 0..9 {
+        let mut d = a[j * 9 + j];
+        for k in 0..j {
+            d -= a[j * 9 + k] * a[j * 9 + k];
+        }
+        if d.is_nan() || d <= 0.0 || d.is_infinite() {
+            return false;
+        }
+        let d = d.sqrt();
+        a[j * 9 + j] = d;
+        for i in j + 1..9 {
+            let mut v = a[i * 9 + j];
+            for k in 0..j {
+                v -= a[i * 9 + k] * a[j * 9 + k];
+            }
+            a[i * 9 + j] = v / d;
+        }
+    }
+    true
+}
+
+/// Solves L X = B in place for the 9 x `width` row-major B.
+fn forward9(l: &[f64; 81], b: &mut [f64], width: usize) {
+    for i in 0..9 {
+        let inv = 1.0 / l[i * 9 + i];
+        for k in 0..i {
+            let f = l[i * 9 + k];
+            if f != 0.0 {
+                for c in 0..width {
+                    b[i * width + c] -= f * b[k * width + c];
+                }
+            }
+        }
+        for c in 0..width {
+            b[i * width + c] *= inv;
+        }
+    }
+}
+
+/// Solves L^T x = y in place.
+fn backward9(l: &[f64; 81], y: &mut [f64; 9]) {
+    for i in (0..9).rev() {
+        let mut v = y[i];
+        for k in i + 1..9 {
+            v -= l[k * 9 + i] * y[k];
+        }
+        y[i] = v / l[i * 9 + i];
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use misslam_framework::nalgebra::{DMatrix, DVector};
+
+    /// A small deterministic generator (xorshift) for the test's random system.
+    struct Rng(u64);
+    impl Rng {
+        fn next(&mut self) -> f64 {
+            self.0 ^= self.0 << 13;
+            self.0 ^= self.0 >> 7;
+            self.0 ^= self.0 << 17;
+            (self.0 >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+        }
+    }
+
+    /// Assembles a system with the structure the solver produces: E_reg edges along a ring and
+    /// chords, data points binding pairs of the data nodes, a PSD diagonal per node (E_rot's
+    /// place), and the pose coupled through the data nodes. Returns it and the node count.
+    fn random_system(pose: bool, eliminate: bool, rng: &mut Rng) -> BlockSystem {
+        const N: u32 = 14;
+        let data_nodes: Vec<u32> = vec![0, 1, 2, 5, 9];
+        let mut edges = Vec::new();
+        for j in 0..N {
+            edges.push((j, (j + 1) % N));
+            edges.push((j, (j + 3) % N));
+            if j % 2 == 0 {
+                edges.push((j, (j + N - 1) % N));
+            }
+        }
+        let points: Vec<(u32, u32)> = vec![(0, 1), (1, 2), (2, 5), (5, 9), (9, 0), (0, 5)];
+        let mut pairs: Vec<(u32, u32)> = edges
+            .iter()
+            .chain(&points)
+            .map(|&(a, b)| (a.min(b), a.max(b)))
+            .collect();
+        pairs.sort_unstable();
+        pairs.dedup();
+        let eliminated: Vec<u32> = if eliminate {
+            (0..N).filter(|j| !data_nodes.contains(j)).collect()
+        } else {
+            Vec::new()
+        };
+        let mut links: Vec<(u32, u32)> = edges
+            .iter()
+            .copied()
+            .filter(|(j, _)| eliminated.contains(j))
+            .collect();
+        links.sort_unstable();
+        links.dedup();
+        let key = PatternKey {
+            free: (0..N).collect(),
+            pairs,
+            pose,
+            eliminated,
+            links,
+        };
+        let mut sys = BlockSystem::default();
+        sys.prepare(N as usize, &key).unwrap();
+        let slot = sys.slot.clone();
+        let s = |j: u32| slot[j as usize];
+        const E4: [f64; 4] = [0.0, 0.0, 0.0, 1.0];
+        let rnd4 = |rng: &mut Rng| [rng.next() * 5.0, rng.next() * 5.0, rng.next() * 5.0, 1.0];
+        for &(j, k) in &edges {
+            let u = rnd4(rng);
+            let w = 1.0 + rng.next().abs();
+            let (sj, sk) = (s(j), s(k));
+            sys.add_kron_identity(sj, sj, &u, &u, w);
+            sys.add_kron_identity(sk, sk, &E4, &E4, w);
+            sys.add_kron_identity(sj, sk, &u, &E4, -w);
+        }
+        for &(a, b) in &points {
+            let n = [rng.next(), rng.next(), rng.next()];
+            let m: [[f64; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|k| n[i] * n[k]));
+            let (ua, ub) = (rnd4(rng), rnd4(rng));
+            let (wa, wb) = (0.5 + rng.next().abs(), 0.5 + rng.next().abs());
+            let (sa, sb) = (s(a), s(b));
+            sys.add_kron(sa, sa, &m, &ua, &ua, wa * wa);
+            sys.add_kron(sb, sb, &m, &ub, &ub, wb * wb);
+            sys.add_kron(sa, sb, &m, &ua, &ub, wa * wb);
+        }
+        for j in 0..N {
+            // A PSD 12x12 of rank 6 (E_rot has 6 rows), plus the ridge the solver's damping adds.
+            let g: Vec<f64> = (0..72).map(|_| rng.next()).collect();
+            let mut h = [0.0; 144];
+            for r in 0..12 {
+                for c in 0..12 {
+                    h[c * 12 + r] = (0..6).map(|q| g[q * 12 + r] * g[q * 12 + c]).sum();
+                }
+            }
+            sys.add_diag(s(j), &h);
+        }
+        let nb = sys.blocks_solved();
+        for x in sys.grad.iter_mut() {
+            *x = rng.next();
+        }
+        if pose {
+            for p in 0..6 {
+                sys.pose_block[p * 6 + p] = 50.0;
+            }
+            for &j in &data_nodes {
+                for v in sys.pose_cross[s(j) as usize].iter_mut() {
+                    *v = 0.3 * rng.next();
+                }
+            }
+        }
+        assert_eq!(sys.blocks_solved(), nb);
+        sys
+    }
+
+    fn dense_solve(sys: &BlockSystem, lambda: f64, ridge: f64) -> Option<Vec<f64>> {
+        let n = sys.dim();
+        let mut h = DMatrix::from_row_slice(n, n, &sys.to_dense());
+        for i in 0..n {
+            let d = h[(i, i)];
+            h[(i, i)] = d + lambda * (d.abs() + ridge) + 1e-12 * ridge;
+        }
+        let g = DVector::from_column_slice(&sys.grad);
+        h.cholesky().map(|c| c.solve(&(-g)).as_slice().to_vec())
+    }
+
+    #[test]
+    fn eliminating_the_data_free_affine_parts_gives_the_full_systems_solution() {
+        let mut rng = Rng(0x9e37_79b9_7f4a_7c15);
+        for pose in [false, true] {
+            for lambda in [0.0, 0.05] {
+                let mut sys = random_system(pose, true, &mut rng);
+                // 5 data nodes keep 12 unknowns, 9 data-free ones keep their translation.
+                assert_eq!(sys.factor_dim(), 5 * 12 + 9 * 3 + if pose { 6 } else { 0 });
+                let want = dense_solve(&sys, lambda, 1e-6).expect("the test system is SPD");
+                let mut dx = Vec::new();
+                assert!(sys.solve(lambda, 1e-6, &mut dx).unwrap());
+                let scale = want.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+                let err = dx
+                    .iter()
+                    .zip(&want)
+                    .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+                assert!(
+                    err <= 1e-9 * scale.max(1.0),
+                    "pose {pose}, lambda {lambda}: max deviation {err:e} (scale {scale:e})"
+                );
+                // And the same system without elimination agrees too.
+                let mut full = random_system(pose, false, &mut Rng(rng.0));
+                assert_eq!(full.factor_dim(), 14 * 12 + if pose { 6 } else { 0 });
+                let want = dense_solve(&full, lambda, 1e-6).unwrap();
+                let mut dx = Vec::new();
+                assert!(full.solve(lambda, 1e-6, &mut dx).unwrap());
+                let err = dx
+                    .iter()
+                    .zip(&want)
+                    .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+                assert!(err <= 1e-9 * scale.max(1.0), "without elimination: {err:e}");
+            }
+        }
+    }
+
+    #[test]
+    fn an_eliminated_block_that_is_not_positive_definite_is_reported() {
+        let mut sys = random_system(false, true, &mut Rng(7));
+        // Make the affine block of one eliminated node indefinite: its 9x9 Cholesky must fail.
+        let s = sys.slot[3];
+        let idx = sys.find(s, s);
+        for r in AFF {
+            sys.blocks[idx][r * 12 + r] = -1.0;
+        }
+        let mut dx = Vec::new();
+        assert!(!sys.solve(0.0, 1e-6, &mut dx).unwrap());
+    }
+
+    #[test]
+    fn a_link_outside_the_pairs_is_an_error_not_a_panic() {
+        let key = PatternKey {
+            free: vec![0, 1, 2],
+            pairs: vec![(0, 1)],
+            pose: false,
+            eliminated: vec![2],
+            links: vec![(2, 0)],
+        };
+        let err = BlockSystem::default().prepare(3, &key).unwrap_err();
+        assert!(err.contains("not among the pairs"), "{err}");
     }
 }

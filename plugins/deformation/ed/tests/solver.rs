@@ -794,3 +794,82 @@ fn bad_input_is_an_error_not_a_panic() {
         .unwrap_err();
     assert!(e.contains("10 vertices") && e.contains("160x120"), "{e}");
 }
+
+#[test]
+fn eliminating_the_affine_parts_of_unseen_nodes_leaves_the_batch_solution_unchanged() {
+    // Only the left part of the sheet is in the data terms: the right part's nodes are data-free,
+    // and the batch solver eliminates their affine unknowns before the sparse factorisation.
+    let Sheet {
+        points,
+        tris,
+        normals,
+        graph: base,
+        bindings: all_bindings,
+    } = Sheet::new(41, 31, 6.0);
+    let (r, t) = rigid(0.02, -0.01, 0.03, [0.8, 0.4, 0.6]);
+    let moved: Vec<Vector3<f64>> = points
+        .iter()
+        .map(|p| r * p + t + Vector3::new(0.0, 0.0, 0.5 * (p.x / 20.0).sin()))
+        .collect();
+    let maps = render(&moved, &tris, &Isometry3::identity());
+    let seen: Vec<usize> = (0..points.len()).filter(|&i| points[i].x < 0.0).collect();
+    let sp: Vec<Vector3<f64>> = seen.iter().map(|&i| points[i]).collect();
+    let sn: Vec<Vector3<f64>> = seen.iter().map(|&i| normals[i]).collect();
+    let sb: Vec<Binding> = seen.iter().map(|&i| all_bindings[i]).collect();
+    let corr = correspondences(
+        &points,
+        &all_bindings,
+        seen.iter().copied().step_by(11),
+        |i| moved[i],
+    );
+    let problem = Problem {
+        model: ModelPoints {
+            points: &sp,
+            normals: &sn,
+            bindings: &sb,
+        },
+        scan: Some(scan(&maps)),
+        field: None,
+        correspondences: &corr,
+        pose_prior: Isometry3::identity(),
+    };
+    let params = SolverParams {
+        max_iterations: 6,
+        ..Default::default()
+    };
+    let run = |full: bool| {
+        let mut graph = base.clone();
+        let mut pose = Isometry3::identity();
+        let mut solver = Solver::default();
+        solver.set_full_factorisation(full);
+        let set = SolveSet::all(&graph, true);
+        let info = solver
+            .solve(&mut graph, &mut pose, &problem, &set, &params)
+            .unwrap();
+        (graph, pose, info, solver.factor_dim())
+    };
+    let (ge, pe, ie, ne) = run(false);
+    let (gf, pf, inf, nf) = run(true);
+    let nodes = base.len();
+    assert_eq!(nf, 12 * nodes + 6);
+    // Each eliminated node leaves 3 of its 12 unknowns to the factorisation.
+    let eliminated = (nf - ne) / 9;
+    assert!(
+        eliminated >= nodes / 4,
+        "{eliminated} of {nodes} nodes eliminated ({ne} unknowns factorised of {nf})"
+    );
+    assert_eq!(ie.iterations, inf.iterations);
+    assert!(ie.cost_after < 0.05 * ie.cost_before, "{ie:?}");
+    let rel = (ie.cost_after - inf.cost_after).abs() / inf.cost_after;
+    assert!(rel < 1e-6, "costs {} and {}", ie.cost_after, inf.cost_after);
+    let dw = ge
+        .warp
+        .iter()
+        .zip(&gf.warp)
+        .flat_map(|(a, b)| a.iter().zip(b).map(|(x, y)| (x - y).abs()))
+        .fold(0.0f64, f64::max);
+    assert!(dw < 1e-7, "largest difference of a warp unknown: {dw:e}");
+    let dp =
+        (pe.translation.vector - pf.translation.vector).norm() + pe.rotation.angle_to(&pf.rotation);
+    assert!(dp < 1e-9, "pose difference {dp:e}");
+}
