@@ -579,14 +579,16 @@ pub fn describe(smooth: &[u8], w: usize, x: i32, y: i32, angle: f32) -> [u64; 4]
     };
     let centre = y as isize * w as isize + x as isize;
     let [x1, y1, x2, y2] = pattern_soa();
-    // Round to nearest by the float trick (adding 1.5 * 2^23 pushes the fraction out).
-    let round = |v: f32| (v + 12_582_912.0) - 12_582_912.0;
-    let wf = w as f32;
+    // Round to nearest by the float trick: adding 1.5 * 2^23 pushes the fraction out, and the
+    // low mantissa bits are then the integer (for |v| < 2^22; the pattern's are below 16). Pure
+    // bit arithmetic, so the loop vectorises (a float-to-int `as` cast saturates and does not).
+    let round = |v: f32| (v + 12_582_912.0).to_bits() as i32 - 0x4B40_0000;
+    let wi = w as i32;
     let mut o1 = [0i32; 256];
     let mut o2 = [0i32; 256];
     for i in 0..256 {
-        o1[i] = (round(s * x1[i] + c * y1[i]) * wf + round(c * x1[i] - s * y1[i])) as i32;
-        o2[i] = (round(s * x2[i] + c * y2[i]) * wf + round(c * x2[i] - s * y2[i])) as i32;
+        o1[i] = round(s * x1[i] + c * y1[i]) * wi + round(c * x1[i] - s * y1[i]);
+        o2[i] = round(s * x2[i] + c * y2[i]) * wi + round(c * x2[i] - s * y2[i]);
     }
     let mut d = [0u64; 4];
     for (word, out) in d.iter_mut().enumerate() {

@@ -26,21 +26,12 @@ pub fn resize_bilinear(src: &[u8], sw: usize, sh: usize, dst: &mut Vec<u8>, dw: 
     if dw == 0 || dh == 0 || sw == 0 || sh == 0 {
         return;
     }
-    let (fx, fy) = (sw as f32 / dw as f32, sh as f32 / dh as f32);
-    // Per column: left source index and 8-bit weight of the right neighbour.
-    let cols: Vec<(usize, u16)> = (0..dw)
-        .map(|x| {
-            let s = ((x as f32 + 0.5) * fx - 0.5).clamp(0.0, (sw - 1) as f32);
-            let i = (s as usize).min(sw.saturating_sub(2));
-            let a = ((s - i as f32) * 256.0).round().clamp(0.0, 256.0) as u16;
-            (i, a)
-        })
-        .collect();
+    let fy = sh as f32 / dh as f32;
+    let cols = columns(sw, dw);
+    let chunks = shuffle_chunks(&cols, sw);
     let horizontal = |row: &[u8], out: &mut [u16]| {
-        for (o, &(i, a)) in out.iter_mut().zip(&cols) {
-            let i1 = (i + 1).min(sw - 1);
-            *o = (row[i] as u16 * (256 - a) + row[i1] as u16 * a + 128) >> 8;
-        }
+        let done = horizontal_simd(row, &chunks, out);
+        horizontal_scalar(row, &cols[done..], &mut out[done..]);
     };
     let (mut top, mut bot) = (vec![0u16; dw], vec![0u16; dw]);
     let (mut top_row, mut bot_row) = (usize::MAX, usize::MAX);
@@ -64,6 +55,110 @@ pub fn resize_bilinear(src: &[u8], sw: usize, sh: usize, dst: &mut Vec<u8>, dw: 
         }
         for ((d, &t), &u) in dst[y * dw..(y + 1) * dw].iter_mut().zip(&top).zip(&bot) {
             *d = ((t * (256 - b) + u * b + 128) >> 8) as u8;
+        }
+    }
+}
+
+/// Per output column: the left source index and the 8-bit weight of the right neighbour.
+fn columns(sw: usize, dw: usize) -> Vec<(usize, u16)> {
+    let fx = sw as f32 / dw as f32;
+    (0..dw)
+        .map(|x| {
+            let s = ((x as f32 + 0.5) * fx - 0.5).clamp(0.0, (sw - 1) as f32);
+            let i = (s as usize).min(sw.saturating_sub(2));
+            let a = ((s - i as f32) * 256.0).round().clamp(0.0, 256.0) as u16;
+            (i, a)
+        })
+        .collect()
+}
+
+/// The horizontal pass, one pixel at a time: `out[k]` from the source pair of `cols[k]`.
+fn horizontal_scalar(row: &[u8], cols: &[(usize, u16)], out: &mut [u16]) {
+    let last = row.len() - 1;
+    for (o, &(i, a)) in out.iter_mut().zip(cols) {
+        let i1 = (i + 1).min(last);
+        *o = (row[i] as u16 * (256 - a) + row[i1] as u16 * a + 128) >> 8;
+    }
+}
+
+/// Eight output pixels of a horizontal resize pass: the 16 source bytes from `base` hold both
+/// neighbours of each, `left` and `right` pick them into 16-bit lanes (a byte shuffle; 0x80 gives
+/// the zero high byte), `weight` is each right neighbour's 8-bit weight.
+#[derive(Clone, Copy)]
+struct Chunk {
+    base: usize,
+    left: [u8; 16],
+    right: [u8; 16],
+    weight: [u16; 8],
+}
+
+/// The leading run of output pixels, eight at a time, whose two source neighbours lie within 16
+/// bytes that can be loaded inside the row (all of them for a downscale by less than 1.85).
+fn shuffle_chunks(cols: &[(usize, u16)], sw: usize) -> Vec<Chunk> {
+    let mut out = Vec::with_capacity(cols.len() / 8);
+    for group in cols.chunks_exact(8) {
+        let base = group[0].0;
+        if base + 16 > sw {
+            break;
+        }
+        let mut c = Chunk {
+            base,
+            left: [0x80; 16],
+            right: [0x80; 16],
+            weight: [0; 8],
+        };
+        let mut fits = true;
+        for (k, &(i, a)) in group.iter().enumerate() {
+            let (l, r) = (i - base, (i + 1).min(sw - 1) - base);
+            fits &= r < 16;
+            c.left[2 * k] = l as u8;
+            c.right[2 * k] = r as u8;
+            c.weight[k] = a;
+        }
+        if !fits {
+            break;
+        }
+        out.push(c);
+    }
+    out
+}
+
+/// The horizontal pass over the leading chunks; returns how many output pixels it wrote.
+fn horizontal_simd(row: &[u8], chunks: &[Chunk], out: &mut [u16]) -> usize {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("ssse3") {
+        // SAFETY: the CPU supports SSSE3 (checked just above).
+        unsafe { horizontal_ssse3(row, chunks, out) };
+        return 8 * chunks.len();
+    }
+    let _ = (row, chunks, out);
+    0
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "ssse3")]
+fn horizontal_ssse3(row: &[u8], chunks: &[Chunk], out: &mut [u16]) {
+    use std::arch::x86_64::*;
+    let round = _mm_set1_epi16(128);
+    let full = _mm_set1_epi16(256);
+    for (c, o) in chunks.iter().zip(out.chunks_exact_mut(8)) {
+        let src: &[u8; 16] = row[c.base..c.base + 16].try_into().expect("16 bytes");
+        // SAFETY: every load reads 16 bytes of a 16-byte array, every store writes 8 u16 of an
+        // 8-element chunk; all unaligned.
+        unsafe {
+            let v = _mm_loadu_si128(src.as_ptr().cast());
+            let l = _mm_shuffle_epi8(v, _mm_loadu_si128(c.left.as_ptr().cast()));
+            let r = _mm_shuffle_epi8(v, _mm_loadu_si128(c.right.as_ptr().cast()));
+            let a = _mm_loadu_si128(c.weight.as_ptr().cast());
+            // l (256 - a) + r a + 128 <= 255 * 256 + 128: exact in 16 bits.
+            let sum = _mm_add_epi16(
+                _mm_add_epi16(
+                    _mm_mullo_epi16(l, _mm_sub_epi16(full, a)),
+                    _mm_mullo_epi16(r, a),
+                ),
+                round,
+            );
+            _mm_storeu_si128(o.as_mut_ptr().cast(), _mm_srli_epi16(sum, 8));
         }
     }
 }
@@ -179,6 +274,38 @@ mod tests {
                     + b * ((1.0 - a) * p(i, j + 1) + a * p(i + 1, j + 1));
                 assert!((out[y * dw + x] as f64 - exact).abs() <= 1.5, "({x}, {y})");
             }
+        }
+    }
+
+    #[test]
+    fn the_shuffled_horizontal_pass_equals_the_scalar_one_at_every_pyramid_step() {
+        let mut state = 7u32;
+        let mut sw = 640usize;
+        for _ in 0..7 {
+            let dw = (sw as f32 / 1.2).round() as usize;
+            let row: Vec<u8> = (0..sw)
+                .map(|_| {
+                    state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                    (state >> 24) as u8
+                })
+                .collect();
+            let cols = columns(sw, dw);
+            let chunks = shuffle_chunks(&cols, sw);
+            // All but the last chunk or two (whose 16-byte load would leave the row).
+            assert!(
+                8 * chunks.len() + 24 >= dw,
+                "{sw} -> {dw}: {} chunks",
+                chunks.len()
+            );
+            let (mut fast, mut slow) = (vec![0u16; dw], vec![0u16; dw]);
+            let done = horizontal_simd(&row, &chunks, &mut fast);
+            horizontal_scalar(&row, &cols, &mut slow);
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("ssse3") {
+                assert_eq!(done, 8 * chunks.len());
+            }
+            assert_eq!(fast[..done], slow[..done], "{sw} -> {dw}");
+            sw = dw;
         }
     }
 
