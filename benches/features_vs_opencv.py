@@ -10,7 +10,8 @@ Images: scikit-image's astronaut and the Middlebury motorcycle (left view), gray
 - Hamming 2-NN of 2000 x 2000 descriptors (misslam's brute force vs OpenCV's BFMatcher.knnMatch).
 - Matching precision on pairs related by a known homography (rotation, scale, perspective): the
   second image is the first warped by H; a match (ratio 0.8, cross-check) is correct when H maps
-  the first keypoint within 3 px of the second. Both run the same matching rule.
+  the first keypoint within 3 px of the second. Both run the same matching rule. misslam runs
+  with its learned tests (rBRIEF, the default) and with steered BRIEF's Gaussian tests.
 """
 import argparse, json, os, subprocess, tempfile, time
 
@@ -49,11 +50,11 @@ def cv_match(da, db):
             and m[0].distance <= 64 and back.get(m[0].trainIdx) == m[0].queryIdx]
 
 
-def misslam(exe, a, b=None, n=1000, dist="quadtree", repeat=20):
+def misslam(exe, a, b=None, n=1000, dist="quadtree", repeat=20, pattern="learned"):
     with tempfile.TemporaryDirectory() as d:
         out = os.path.join(d, "r.json")
         cmd = [exe, "bench", "features", "--image", a, "--n-features", str(n), "--distribution", dist,
-               "--repeat", str(repeat), "--out", out]
+               "--pattern", pattern, "--repeat", str(repeat), "--out", out]
         if b:
             cmd += ["--image2", b]
         subprocess.run(cmd, check=True, capture_output=True)
@@ -64,17 +65,24 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--misslam", default="target/debug/misslam")
     ap.add_argument("--json", help="also write the rows here")
+    ap.add_argument("--image", action="append", default=[],
+                    help="also run on this image (gray, resized to 640x480); repeatable")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     imgs = {
         "astronaut": cv2.cvtColor(skimage.data.astronaut(), cv2.COLOR_RGB2GRAY),
         "motorcycle": cv2.cvtColor(skimage.data.stereo_motorcycle()[0], cv2.COLOR_RGB2GRAY),
     }
+    for path in args.image:
+        img = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise SystemExit(f"{path}: not an image")
+        imgs[os.path.basename(os.path.dirname(os.path.dirname(path))) + "/" + os.path.basename(path)] = img
     rows = []
     with tempfile.TemporaryDirectory() as d:
         for name, img in imgs.items():
             img = cv2.resize(img, (640, 480), interpolation=cv2.INTER_AREA)
-            pa = os.path.join(d, f"{name}.png")
+            pa = os.path.join(d, f"{name.replace('/', '_')}.png")
             cv2.imwrite(pa, img)
             orb = cv2.ORB_create(1000)
             ts = []
@@ -92,7 +100,7 @@ def main():
             # 2000 x 2000 Hamming kNN: descriptors of this image against those of a warped copy.
             H = homographies(640, 480)[0][1]
             wb = cv2.warpPerspective(img, H, (640, 480))
-            pb = os.path.join(d, f"{name}_warp.png")
+            pb = os.path.join(d, f"{name.replace('/', '_')}_warp.png")
             cv2.imwrite(pb, wb)
             o2 = cv2.ORB_create(2000)
             _, d1 = o2.detectAndCompute(img, None)
@@ -116,15 +124,18 @@ def main():
                 m = cv_match(da, db)
                 cv_p, cv_n = precision([[*ka[x.queryIdx].pt, *kb[x.trainIdx].pt] for x in m], H)
                 res = {}
-                for dist in ["none", "quadtree"]:
-                    r = misslam(args.misslam, pa, pb, n=1000, dist=dist, repeat=1)
-                    res[dist] = precision(r["matches"], H)
+                for dist, pattern in [("none", "learned"), ("quadtree", "learned"), ("none", "gaussian")]:
+                    r = misslam(args.misslam, pa, pb, n=1000, dist=dist, repeat=1, pattern=pattern)
+                    res[dist if pattern == "learned" else f"{dist}_{pattern}"] = precision(r["matches"], H)
+                fmt = lambda k: f"{res[k][0]:.3f} ({res[k][1]})"
                 print(f"  {hname:<15} precision (matches): OpenCV {cv_p:.3f} ({cv_n}), misslam none "
-                      f"{res['none'][0]:.3f} ({res['none'][1]}), quadtree {res['quadtree'][0]:.3f} ({res['quadtree'][1]})")
+                      f"{fmt('none')}, quadtree {fmt('quadtree')}; steered BRIEF, none {fmt('none_gaussian')}")
                 rows.append(dict(image=name, warp=hname, opencv_precision=cv_p, opencv_matches=cv_n,
                                  misslam_none_precision=res["none"][0], misslam_none_matches=res["none"][1],
                                  misslam_quadtree_precision=res["quadtree"][0],
-                                 misslam_quadtree_matches=res["quadtree"][1]))
+                                 misslam_quadtree_matches=res["quadtree"][1],
+                                 misslam_none_gaussian_precision=res["none_gaussian"][0],
+                                 misslam_none_gaussian_matches=res["none_gaussian"][1]))
     if args.json:
         json.dump(rows, open(args.json, "w"), indent=1)
 

@@ -516,10 +516,13 @@ pub fn features(
     image2: Option<&Path>,
     n_features: usize,
     distribution: &str,
+    pattern: &str,
     repeat: usize,
 ) -> Result<FeaturesBench, String> {
     use misslam_features_matching::{knn2_hamming, match_descriptors, MatchParams, MatchScratch};
-    use misslam_features_orb::extract::{extract, Distribution, OrbParams, OrbScratch};
+    use misslam_features_orb::extract::{
+        extract, Distribution, OrbParams, OrbScratch, PatternKind,
+    };
     use misslam_framework::Descriptors;
     let distribution = match distribution {
         "quadtree" => Distribution::Quadtree,
@@ -531,9 +534,15 @@ pub fn features(
             ))
         }
     };
+    let pattern = match pattern {
+        "learned" => PatternKind::Learned,
+        "gaussian" => PatternKind::Gaussian,
+        other => return Err(format!("--pattern `{other}`: expected learned or gaussian")),
+    };
     let p = OrbParams {
         n_features,
         distribution,
+        pattern,
         ..OrbParams::default()
     };
     p.validate()?;

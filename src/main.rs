@@ -254,6 +254,9 @@ enum BenchCommand {
         /// quadtree, grid or none (none keeps the strongest corners, as OpenCV's ORB).
         #[arg(long, default_value = "quadtree")]
         distribution: String,
+        /// The ORB tests: learned (rBRIEF) or gaussian (steered BRIEF).
+        #[arg(long, default_value = "learned")]
+        pattern: String,
         /// orb, or surf (SURF: `--n-features` caps the keypoints; timing only, no pair).
         #[arg(long, default_value = "orb")]
         detector: String,
@@ -481,6 +484,7 @@ fn run(command: Command) -> anyhow::Result<()> {
                     image2,
                     n_features,
                     distribution,
+                    pattern,
                     detector,
                     repeat,
                     out,
@@ -505,6 +509,7 @@ fn run(command: Command) -> anyhow::Result<()> {
                 image2.as_deref(),
                 n_features,
                 &distribution,
+                &pattern,
                 repeat,
             )
             .map_err(anyhow::Error::msg)?;

@@ -5,7 +5,9 @@
 
 use misslam::framework::{Descriptors, Keypoint};
 use misslam_features_matching::{match_descriptors, MatchParams, MatchScratch};
-use misslam_features_orb::extract::{extract, Distribution, OrbParams, OrbScratch};
+mod common;
+
+use misslam_features_orb::extract::{extract, Distribution, OrbParams, OrbScratch, PatternKind};
 use misslam_features_surf::surf::{self, DenseParams, SurfParams, SurfScratch};
 
 /// A texture of random rectangles and discs, sampled at any point (supersampled 4x4 so the
@@ -341,5 +343,91 @@ fn dense_surf_matches_a_weakly_textured_shift() {
     assert!(
         sparse.0.len() < n,
         "dense SURF should beat the detector here"
+    );
+}
+
+/// Bilinear warp of a gray image by (deg, scale) about its centre (outside: black, as OpenCV's
+/// warpAffine fills), and the map from the unwarped image to it.
+fn warp_image(
+    img: &[u8],
+    w: usize,
+    h: usize,
+    deg: f32,
+    scale: f32,
+) -> (Vec<u8>, impl Fn(f32, f32) -> (f32, f32)) {
+    let (cx, cy) = (w as f32 / 2.0, h as f32 / 2.0);
+    let (s, c) = deg.to_radians().sin_cos();
+    let at = |x: usize, y: usize| img[y * w + x] as f32;
+    let mut out = vec![0u8; w * h];
+    for v in 0..h {
+        for u in 0..w {
+            let (x, y) = ((u as f32 - cx) / scale, (v as f32 - cy) / scale);
+            let (sx, sy) = (c * x + s * y + cx, -s * x + c * y + cy);
+            if sx < 0.0 || sy < 0.0 || sx >= (w - 1) as f32 || sy >= (h - 1) as f32 {
+                continue;
+            }
+            let (i, j) = (sx as usize, sy as usize);
+            let (a, b) = (sx - i as f32, sy - j as f32);
+            let val = (1.0 - b) * ((1.0 - a) * at(i, j) + a * at(i + 1, j))
+                + b * ((1.0 - a) * at(i, j + 1) + a * at(i + 1, j + 1));
+            out[v * w + u] = val.round() as u8;
+        }
+    }
+    let to_b = move |x: f32, y: f32| {
+        let (x, y) = (x - cx, y - cy);
+        (scale * (c * x - s * y) + cx, scale * (s * x + c * y) + cy)
+    };
+    (out, to_b)
+}
+
+#[test]
+fn learned_tests_match_held_out_colon_frames_better_than_gaussian_ones() {
+    // colonsyn31 is held out of the learning (examples/learn_orb_pattern.rs trains on hamlyn20
+    // and colonsyn30): weakly textured, smooth tissue, where the descriptor's tests matter most.
+    let Some(dir) = common::data_set("colonsyn31") else {
+        return;
+    };
+    let mut total = [(0usize, 0usize); 2];
+    for frame in [1, 12] {
+        let path = dir.join(format!("left/{frame}.png"));
+        let img = image::open(&path).unwrap().to_luma8();
+        let (w, h) = (img.width() as usize, img.height() as usize);
+        for (k, pattern) in [PatternKind::Learned, PatternKind::Gaussian]
+            .into_iter()
+            .enumerate()
+        {
+            let p = OrbParams {
+                distribution: Distribution::None,
+                pattern,
+                ..OrbParams::default()
+            };
+            let run = |img: &[u8]| {
+                let (mut kp, mut d) = (Vec::new(), Vec::new());
+                extract(img, w, h, &p, &mut OrbScratch::default(), &mut kp, &mut d).unwrap();
+                (kp, d)
+            };
+            let fa = run(img.as_raw());
+            for (deg, scale) in &WARPS[1..] {
+                let (b, to_b) = warp_image(img.as_raw(), w, h, *deg, *scale);
+                let fb = run(&b);
+                let (prec, n) = precision(binary(&fa), binary(&fb), to_b, 3.0 * scale);
+                eprintln!("colonsyn31/{frame} {pattern:?}: rotation {deg}, scale {scale}: {n} matches, precision {prec:.3}");
+                total[k].0 += (prec * n as f64).round() as usize;
+                total[k].1 += n;
+            }
+        }
+    }
+    let prec = |t: (usize, usize)| t.0 as f64 / t.1.max(1) as f64;
+    let (learned, gaussian) = (prec(total[0]), prec(total[1]));
+    eprintln!(
+        "correct / matches: learned {}/{} ({learned:.3}), gaussian {}/{} ({gaussian:.3})",
+        total[0].0, total[0].1, total[1].0, total[1].1
+    );
+    assert!(total[0].1 >= 400, "only {} matches", total[0].1);
+    assert!(
+        learned > gaussian && total[0].0 >= total[1].0,
+        "learned {learned:.3} ({} correct), gaussian {gaussian:.3} ({} correct)",
+        total[0].0,
+        total[1].0
     );
 }

@@ -4,7 +4,21 @@
 use misslam_framework::Keypoint;
 
 use crate::fast::{self, Corner, FastScratch};
+use crate::learned_pattern::LEARNED;
 use crate::pyramid::{gaussian7, resize_bilinear, Level};
+
+/// Which 256 binary tests the descriptor uses.
+#[derive(
+    Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, schemars::JsonSchema,
+)]
+#[serde(rename_all = "snake_case")]
+pub enum PatternKind {
+    /// rBRIEF: tests learned for high variance and low correlation on oriented keypoints of
+    /// surgical frames (the ORB paper's section 4.3; `examples/learn_orb_pattern.rs`).
+    Learned,
+    /// Steered BRIEF's isotropic Gaussian pattern (G II), from a fixed seed.
+    Gaussian,
+}
 
 /// How the kept corners are spread over each level.
 #[derive(
@@ -47,6 +61,9 @@ pub struct OrbParams {
     pub harris_k: f32,
     /// Compute orientations (false gives upright descriptors, angle NaN).
     pub oriented: bool,
+    /// The binary tests: `learned` (rBRIEF) or `gaussian` (steered BRIEF). Descriptors of the two
+    /// are not comparable with each other.
+    pub pattern: PatternKind,
 }
 
 impl Default for OrbParams {
@@ -62,6 +79,7 @@ impl Default for OrbParams {
             distribution: Distribution::Quadtree,
             harris_k: 0.04,
             oriented: true,
+            pattern: PatternKind::Learned,
         }
     }
 }
@@ -137,10 +155,23 @@ pub const HALF_PATCH: i32 = 15;
 /// the orientation patch, and inside the border of `edge_threshold` >= 16 with the blur).
 pub const PATTERN_RADIUS: f32 = 15.0;
 
-/// The 256 point pairs of the binary tests: BRIEF's isotropic Gaussian pattern (G II, sigma =
-/// 31 / 5) from a fixed seed, clipped to [`PATTERN_RADIUS`]. Deterministic across runs and
-/// platforms, so descriptors are comparable between runs.
-pub fn pattern() -> &'static [[f32; 4]; 256] {
+/// The 256 point pairs (x1, y1, x2, y2) of the binary tests of `kind`.
+pub fn pattern(kind: PatternKind) -> &'static [[f32; 4]; 256] {
+    match kind {
+        PatternKind::Gaussian => gaussian_pattern(),
+        PatternKind::Learned => learned_pattern(),
+    }
+}
+
+fn learned_pattern() -> &'static [[f32; 4]; 256] {
+    static PATTERN: std::sync::OnceLock<[[f32; 4]; 256]> = std::sync::OnceLock::new();
+    PATTERN.get_or_init(|| LEARNED.map(|t| t.map(|v| v as f32)))
+}
+
+/// BRIEF's isotropic Gaussian pattern (G II, sigma = 31 / 5) from a fixed seed, clipped to
+/// [`PATTERN_RADIUS`]. Deterministic across runs and platforms, so descriptors are comparable
+/// between runs.
+fn gaussian_pattern() -> &'static [[f32; 4]; 256] {
     static PATTERN: std::sync::OnceLock<[[f32; 4]; 256]> = std::sync::OnceLock::new();
     PATTERN.get_or_init(|| {
         let mut state = 0x6d69_7373_6c61_6d00u64; // "misslam"
@@ -237,7 +268,14 @@ pub fn extract(
             } else {
                 f32::NAN
             };
-            descriptors.push(describe(&level.smooth, w, c.x as i32, c.y as i32, angle));
+            descriptors.push(describe(
+                &level.smooth,
+                w,
+                c.x as i32,
+                c.y as i32,
+                angle,
+                params.pattern,
+            ));
             keypoints.push(Keypoint {
                 x: c.x as f32 * level.scale,
                 y: c.y as f32 * level.scale,
@@ -560,10 +598,16 @@ pub fn orientation(img: &[u8], w: usize, x: i32, y: i32) -> f32 {
 }
 
 /// The pattern as four coordinate arrays (x1, y1, x2, y2), for loops the compiler vectorises.
-fn pattern_soa() -> &'static [[f32; 256]; 4] {
-    static SOA: std::sync::OnceLock<[[f32; 256]; 4]> = std::sync::OnceLock::new();
-    SOA.get_or_init(|| {
-        let p = pattern();
+fn pattern_soa(kind: PatternKind) -> &'static [[f32; 256]; 4] {
+    type Soa = std::sync::OnceLock<[[f32; 256]; 4]>;
+    static GAUSSIAN: Soa = Soa::new();
+    static LEARNED: Soa = Soa::new();
+    let cell = match kind {
+        PatternKind::Gaussian => &GAUSSIAN,
+        PatternKind::Learned => &LEARNED,
+    };
+    cell.get_or_init(|| {
+        let p = pattern(kind);
         std::array::from_fn(|k| std::array::from_fn(|i| p[i][k]))
     })
 }
@@ -571,14 +615,21 @@ fn pattern_soa() -> &'static [[f32; 256]; 4] {
 /// Steered BRIEF: the 256 tests of [`pattern`] rotated by `angle` (upright when NaN), on the
 /// smoothed level; bit `i` is set when the first point of pair `i` is darker than the second.
 /// The rotated offsets are computed in one vectorised pass, the tests without branches.
-pub fn describe(smooth: &[u8], w: usize, x: i32, y: i32, angle: f32) -> [u64; 4] {
+pub fn describe(
+    smooth: &[u8],
+    w: usize,
+    x: i32,
+    y: i32,
+    angle: f32,
+    kind: PatternKind,
+) -> [u64; 4] {
     let (s, c) = if angle.is_finite() {
         angle.sin_cos()
     } else {
         (0.0, 1.0)
     };
     let centre = y as isize * w as isize + x as isize;
-    let [x1, y1, x2, y2] = pattern_soa();
+    let [x1, y1, x2, y2] = pattern_soa(kind);
     // Round to nearest by the float trick: adding 1.5 * 2^23 pushes the fraction out, and the
     // low mantissa bits are then the integer (for |v| < 2^22; the pattern's are below 16). Pure
     // bit arithmetic, so the loop vectorises (a float-to-int `as` cast saturates and does not).
@@ -623,7 +674,7 @@ mod tests {
 
     #[test]
     fn pattern_is_deterministic_and_inside_the_radius() {
-        let p = pattern();
+        let p = pattern(PatternKind::Gaussian);
         for t in p.iter() {
             for k in [0, 2] {
                 assert!(t[k] * t[k] + t[k + 1] * t[k + 1] <= PATTERN_RADIUS * PATTERN_RADIUS);
@@ -633,6 +684,25 @@ mod tests {
         // Spread like a Gaussian of sigma 6.2 clipped at 13: the RMS radius is near 8.
         let rms = (p.iter().map(|t| t[0] * t[0] + t[1] * t[1]).sum::<f32>() / 256.0).sqrt();
         assert!((6.0..10.0).contains(&rms), "{rms}");
+    }
+
+    #[test]
+    fn the_learned_tests_are_distinct_candidates_inside_the_radius() {
+        let p = pattern(PatternKind::Learned);
+        let r = PATTERN_RADIUS - 2.0;
+        let mut seen = std::collections::HashSet::new();
+        for t in p.iter() {
+            for k in [0, 2] {
+                assert!(t[k] * t[k] + t[k + 1] * t[k + 1] <= r * r, "{t:?}");
+            }
+            // Their 5x5 windows do not overlap, and no test is taken twice.
+            assert!(
+                (t[0] - t[2]).abs() >= 5.0 || (t[1] - t[3]).abs() >= 5.0,
+                "{t:?}"
+            );
+            assert!(seen.insert(t.map(|v| v as i32)), "{t:?} twice");
+        }
+        assert_ne!(p, pattern(PatternKind::Gaussian));
     }
 
     #[test]

@@ -7,12 +7,14 @@
 
 pub mod extract;
 pub mod fast;
+pub mod learn;
+mod learned_pattern;
 pub mod pyramid;
 
 use misslam_features_matching::extractor::{self, Detector, FeatureNode, FeatureParams};
 use misslam_framework::{BuildContext, BuildError, Descriptors, Keypoint, Registry, TypedPlugin};
 
-pub use extract::{Distribution, OrbParams};
+pub use extract::{Distribution, OrbParams, PatternKind};
 
 /// Parameters of `features.orb`: `detector` ([`OrbParams`]), `stereo`, `parallel`.
 pub type Params = FeatureParams<OrbParams>;

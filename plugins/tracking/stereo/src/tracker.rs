@@ -45,6 +45,13 @@ pub struct TrackerParams {
     /// A new keyframe is made when the inliers fall below this fraction of those of the first
     /// frame tracked against the reference keyframe.
     pub keyframe_overlap: f32,
+    /// A frame that keeps fewer than this fraction of the previous frame's inliers is reported
+    /// lost, with the reason. Such a collapse in one frame means a blurred, occluded or dark
+    /// image rather than a changed view (a view changes over several frames): the few matches
+    /// left mix the scope's positions during the exposure and give a pose off its path, and a
+    /// keyframe made from it would pass that error on to every frame tracked against it. The
+    /// next frames relocalise (0 disables the check).
+    pub min_kept: f32,
     /// Keyframes kept for relocalisation and reuse (the oldest is dropped first).
     pub max_keyframes: usize,
     /// Map reuse: when the reference keyframe's overlap drops, this many stored keyframes that
@@ -80,6 +87,7 @@ impl Default for TrackerParams {
             refine_iterations: 10,
             min_inliers: 20,
             keyframe_overlap: 0.6,
+            min_kept: 0.5,
             max_keyframes: 200,
             reuse_candidates: 4,
             reuse_min_visible: 0.5,
@@ -141,6 +149,12 @@ impl TrackerParams {
             return Err(format!(
                 "`reuse_min_visible` must lie in (0, 1], got {}",
                 self.reuse_min_visible
+            ));
+        }
+        if !(0.0..=1.0).contains(&self.min_kept) {
+            return Err(format!(
+                "`min_kept` must lie in [0, 1], got {}",
+                self.min_kept
             ));
         }
         if self.max_keyframes == 0 {
@@ -228,6 +242,8 @@ pub struct Tracker {
     last: Option<Isometry3<f64>>,
     velocity: Isometry3<f64>,
     lost: bool,
+    /// Inliers of the last tracked frame (0 after a loss).
+    last_inliers: usize,
     scratch: MatchScratch,
 }
 
@@ -247,6 +263,7 @@ impl Tracker {
             last: None,
             velocity: Isometry3::identity(),
             lost: false,
+            last_inliers: 0,
             scratch: MatchScratch::default(),
         }
     }
@@ -320,6 +337,16 @@ impl Tracker {
             if est.is_none() {
                 cand = self.brute(r, features, cam)?;
                 est = estimate(cam, &cand.obs, &ransac, frame);
+            }
+            if let Some(e) = &est {
+                if (e.inlier_count as f32) < self.params.min_kept * self.last_inliers as f32 {
+                    let reason = format!(
+                        "the inliers fell from {} to {} in one frame (blurred, occluded or dark \
+                         image?); below `min_kept` {} of them the pose is not trusted",
+                        self.last_inliers, e.inlier_count, self.params.min_kept
+                    );
+                    return Ok(self.lose(reason));
+                }
             }
             if let Some(e) = est {
                 let kf = &mut self.keyframes[r];
@@ -440,6 +467,7 @@ impl Tracker {
 
     fn lose(&mut self, reason: String) -> TrackResult {
         self.lost = true;
+        self.last_inliers = 0;
         self.velocity = Isometry3::identity();
         self.lost_result(reason)
     }
@@ -462,6 +490,7 @@ impl Tracker {
         }
         self.last = Some(pose);
         self.lost = false;
+        self.last_inliers = e.inlier_count;
         let kf = &self.keyframes[kf_index];
         let kf_frame = kf.frame;
         let points = features.points.as_deref().unwrap_or(&[]);

@@ -1,0 +1,146 @@
+//! Learns ORB's 256 binary tests (rBRIEF, Rublee et al. 2011, section 4.3) from keypoints of
+//! surgical stereo frames and writes them as `plugins/features/orb/src/learned_pattern.rs`.
+//!
+//! ```text
+//! cargo run --example learn_orb_pattern -- [--out FILE] [--max-patches N] [DIR ...]
+//! ```
+//!
+//! Each DIR is a stereo folder (`left/`, `right/`); the default is `hamlyn20` and `colonsyn30` of
+//! `../shared/data` (`colonsyn31` is held out: `tests/features.rs` scores the table on it). It
+//! takes about two minutes. Every image gives up to 1,000 oriented ORB keypoints (the
+//! default detector, Gaussian test pattern); each one's patch is sampled on the smoothed pyramid
+//! level, turned to its orientation, and the greedy search of `misslam_features_orb::learn` picks
+//! the tests. The table is data derived from the images (means and correlations of
+//! comparisons), not the images.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use misslam_features_orb::extract::{extract, OrbParams, OrbScratch, PatternKind};
+use misslam_features_orb::learn::{learn, sample_patch, LearnParams, Patch};
+
+fn images(dir: &Path) -> Result<Vec<PathBuf>, String> {
+    let mut out = Vec::new();
+    for side in ["left", "right"] {
+        let d = dir.join(side);
+        let rd = std::fs::read_dir(&d).map_err(|e| format!("{}: {e}", d.display()))?;
+        let mut files: Vec<PathBuf> = rd
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|x| x == "png"))
+            .collect();
+        files.sort();
+        out.extend(files);
+    }
+    Ok(out)
+}
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let mut out = PathBuf::from("plugins/features/orb/src/learned_pattern.rs");
+    let mut max_patches = 40_000usize;
+    let mut dirs = Vec::new();
+    let mut args = std::env::args().skip(1);
+    while let Some(a) = args.next() {
+        match a.as_str() {
+            "--out" => out = PathBuf::from(args.next().ok_or("--out needs a file")?),
+            "--max-patches" => {
+                max_patches = args.next().ok_or("--max-patches needs a number")?.parse()?;
+            }
+            _ => dirs.push(PathBuf::from(a)),
+        }
+    }
+    if dirs.is_empty() {
+        let data = Path::new("../shared/data");
+        dirs = ["hamlyn20", "colonsyn30"]
+            .iter()
+            .map(|d| data.join(d))
+            .collect();
+    }
+    // The training keypoints come from the untrained (Gaussian) pattern's detector: detection
+    // and orientation do not depend on the pattern.
+    let params = OrbParams {
+        pattern: PatternKind::Gaussian,
+        ..Default::default()
+    };
+    let mut scratch = OrbScratch::default();
+    let (mut kps, mut desc) = (Vec::new(), Vec::new());
+    let mut patches: Vec<Patch> = Vec::new();
+    let mut names = Vec::new();
+    let mut n_images = 0;
+    for dir in &dirs {
+        for file in images(dir)? {
+            let img = image::open(&file)
+                .map_err(|e| format!("{}: {e}", file.display()))?
+                .to_luma8();
+            let (w, h) = (img.width() as usize, img.height() as usize);
+            extract(
+                img.as_raw(),
+                w,
+                h,
+                &params,
+                &mut scratch,
+                &mut kps,
+                &mut desc,
+            )?;
+            for k in &kps {
+                let lv = &scratch.levels()[k.octave as usize];
+                let (x, y) = (
+                    (k.x / lv.scale).round() as i32,
+                    (k.y / lv.scale).round() as i32,
+                );
+                if let Some(p) = sample_patch(&lv.smooth, lv.width, lv.height, x, y, k.angle) {
+                    patches.push(p);
+                }
+            }
+            n_images += 1;
+        }
+        names.push(dir.file_name().map_or_else(
+            || dir.display().to_string(),
+            |n| n.to_string_lossy().into_owned(),
+        ));
+    }
+    // An even subsample when there are more patches than wanted.
+    let total = patches.len();
+    if total > max_patches {
+        let step = total as f64 / max_patches as f64;
+        patches = (0..max_patches)
+            .map(|i| patches[(i as f64 * step) as usize])
+            .collect();
+    }
+    eprintln!(
+        "{} patches from {n_images} images ({total} keypoints); learning ...",
+        patches.len()
+    );
+    let t = std::time::Instant::now();
+    let l = learn(&patches, &LearnParams::default())?;
+    eprintln!(
+        "{} tests in {:.1} s: threshold {:.2}, {} candidates considered, largest correlation {:.3}, means {:.3} to {:.3}",
+        l.tests.len(),
+        t.elapsed().as_secs_f64(),
+        l.threshold,
+        l.candidates,
+        l.max_correlation,
+        l.means.iter().copied().fold(f64::INFINITY, f64::min),
+        l.means.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+    );
+    let mut s = String::new();
+    writeln!(
+        s,
+        "// Generated by `cargo run --example learn_orb_pattern`: do not edit by hand.\n\
+         // rBRIEF tests learned from {} patches of oriented ORB keypoints in {n_images} images of\n\
+         // {} (../shared/data); correlation threshold {:.2}, largest correlation {:.3}.\n\n\
+         /// The learned tests (x1, y1, x2, y2), pixels of the level, in the order the greedy search\n\
+         /// took them.\n\
+         pub(crate) const LEARNED: [[i8; 4]; 256] = [",
+        patches.len(),
+        names.join(", "),
+        l.threshold,
+        l.max_correlation
+    )?;
+    for t in &l.tests {
+        writeln!(s, "    [{}, {}, {}, {}],", t[0], t[1], t[2], t[3])?;
+    }
+    writeln!(s, "];")?;
+    std::fs::write(&out, s).map_err(|e| format!("{}: {e}", out.display()))?;
+    eprintln!("wrote {}", out.display());
+    Ok(())
+}
