@@ -193,11 +193,17 @@ fn warped(
         let (x, y) = ((u - cx) / scale, (v - cy) / scale);
         (c * x + s * y + cx, -s * x + c * y + cy)
     });
-    let to_b = move |x: f32, y: f32| {
+    (b, similarity(w, h, deg, scale))
+}
+
+/// The map from an image to its copy rotated by `deg` and scaled by `scale` about the centre.
+fn similarity(w: usize, h: usize, deg: f32, scale: f32) -> impl Fn(f32, f32) -> (f32, f32) {
+    let (cx, cy) = (w as f32 / 2.0, h as f32 / 2.0);
+    let (s, c) = deg.to_radians().sin_cos();
+    move |x: f32, y: f32| {
         let (x, y) = (x - cx, y - cy);
         (scale * (c * x - s * y) + cx, scale * (s * x + c * y) + cy)
-    };
-    (b, to_b)
+    }
 }
 
 #[test]
@@ -373,11 +379,7 @@ fn warp_image(
             out[v * w + u] = val.round() as u8;
         }
     }
-    let to_b = move |x: f32, y: f32| {
-        let (x, y) = (x - cx, y - cy);
-        (scale * (c * x - s * y) + cx, scale * (s * x + c * y) + cy)
-    };
-    (out, to_b)
+    (out, similarity(w, h, deg, scale))
 }
 
 #[test]
