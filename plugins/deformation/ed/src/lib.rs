@@ -17,6 +17,7 @@ pub mod knn;
 pub mod node;
 pub mod observe;
 pub mod problem;
+mod schur;
 pub mod solver;
 pub mod system;
 

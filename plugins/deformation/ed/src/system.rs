@@ -2,7 +2,7 @@
 //! an optional 6-wide pose block, assembled straight into block storage, reduced, and factorised by
 //! faer's sparse Cholesky.
 //!
-//! **Reduction.** A node that no data term touches (no model point, field sample or correspondence
+//! **Reduction** ([`crate::schur`]). A node that no data term touches (no model point, field sample or correspondence
 //! is bound to it) has its 9 affine unknowns A coupled only to its own translation and to the
 //! translations of the nodes its regularisation edges point to: E_rot involves A alone, and E_reg
 //! of edge (j, k) is `A_j (g_k - g_j) + g_j + t_j - g_k - t_k`. Those A blocks are eliminated first,
@@ -26,6 +26,8 @@ use faer::sparse::linalg::cholesky::{
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
 use faer::{Par, Side};
 
+use crate::schur::{sym12, Elimination, Layout, KEEP_FULL, KEEP_T};
+
 /// Block pattern key: solved nodes, coupled node pairs (node ids, j < k), pose block or not.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct PatternKey {
@@ -41,24 +43,6 @@ pub struct PatternKey {
     /// Directed couplings (j, k), j eliminated, k solved, j != k: E_reg edges whose A_j term
     /// reaches t_k. Sorted, unique. Each (j, k) must also be in `pairs`.
     pub links: Vec<(u32, u32)>,
-}
-
-/// Kept (factorised) unknowns of a node with data, in its 12-layout `[A row 0 | t0, ...]`:
-/// the 9 affine entries, then the translation.
-const KEEP_FULL: [usize; 12] = [0, 1, 2, 4, 5, 6, 8, 9, 10, 3, 7, 11];
-/// Kept unknowns of an eliminated node: its translation.
-const KEEP_T: [usize; 3] = [3, 7, 11];
-/// The affine entries of a node in its 12-layout.
-const AFF: [usize; 9] = [0, 1, 2, 4, 5, 6, 8, 9, 10];
-
-/// Upper-triangle index of entry (r, c) of a symmetric 12x12 stored column-major.
-#[inline(always)]
-fn sym12(r: usize, c: usize) -> usize {
-    if r <= c {
-        c * 12 + r
-    } else {
-        r * 12 + c
-    }
 }
 
 /// The assembled system and its factorisation workspace.
@@ -83,23 +67,8 @@ pub struct BlockSystem {
     koff: Vec<usize>,
     /// Per original block: offset of its rows within its reduced column.
     blk_rowoff: Vec<u32>,
-    /// Eliminated slots; per eliminated slot e, `t_start[e]..t_start[e + 1]` indexes `t_slots`
-    /// (its own slot first, then the slots its A reaches) and `t_blk` (the original block holding
-    /// that coupling, and whether it is stored transposed, i.e. the eliminated slot is its column).
-    elim: Vec<u32>,
-    t_start: Vec<usize>,
-    t_slots: Vec<u32>,
-    t_blk: Vec<(u32, bool)>,
-    /// Per eliminated slot e, from `pair_start[e]`: |T|^2 row offsets of reduced block
-    /// (T[a], T[b]) in its column (meaningful where slot T[a] <= slot T[b]).
-    pair_start: Vec<usize>,
-    pair_rowoff: Vec<u32>,
-    /// Per eliminated slot: the 9x9 Cholesky factor of its damped affine block (row-major lower),
-    /// W = L^-1 C (9 x 3|T|, row-major, from `w_start`) and w = L^-1 g_A.
-    chol: Vec<[f64; 81]>,
-    w_start: Vec<usize>,
-    w_mat: Vec<f64>,
-    w_vec: Vec<[f64; 9]>,
+    /// The elimination of the data-free nodes' affine parts.
+    elimination: Elimination,
     /// Reduced right-hand side and solution.
     rhs: Vec<f64>,
     col_ptr: Vec<usize>,
@@ -128,16 +97,7 @@ impl Default for BlockSystem {
             elim_slot: Vec::new(),
             koff: vec![0],
             blk_rowoff: Vec::new(),
-            elim: Vec::new(),
-            t_start: vec![0],
-            t_slots: Vec::new(),
-            t_blk: Vec::new(),
-            pair_start: Vec::new(),
-            pair_rowoff: Vec::new(),
-            chol: Vec::new(),
-            w_start: Vec::new(),
-            w_mat: Vec::new(),
-            w_vec: Vec::new(),
+            elimination: Elimination::default(),
             rhs: Vec::new(),
             col_ptr: Vec::new(),
             row_idx: Vec::new(),
@@ -336,35 +296,8 @@ impl BlockSystem {
         }
         // Eliminated slots: their reach in slots, the blocks holding the couplings, and the
         // reduced blocks their Schur complement lands in.
-        let (mut elim, mut t_start, mut t_slots, mut t_blk) =
-            (Vec::new(), vec![0usize], Vec::new(), Vec::new());
-        let (mut pair_start, mut pair_rowoff, mut w_start) = (Vec::new(), Vec::new(), Vec::new());
-        let mut w_len = 0;
-        for s in 0..nf {
-            if !elim_slot[s] {
-                continue;
-            }
-            let lj = perm[s];
-            elim.push(s as u32);
-            let first = t_slots.len();
-            t_slots.push(s as u32);
-            t_blk.push((find_orig(s as u32, s as u32)?, false));
-            for &a in &reach[lj] {
-                let sa = perm_inv[a] as u32;
-                t_slots.push(sa);
-                t_blk.push((find_orig(s as u32, sa)?, sa < s as u32));
-            }
-            t_start.push(t_slots.len());
-            let t = &t_slots[first..];
-            pair_start.push(pair_rowoff.len());
-            for &a in t {
-                for &b in t {
-                    pair_rowoff.push(rowoff_of(a, b)?);
-                }
-            }
-            w_start.push(w_len);
-            w_len += 9 * 3 * t.len();
-        }
+        let elimination =
+            Elimination::plan(&elim_slot, &reach, &perm, &perm_inv, find_orig, rowoff_of)?;
         // Scalar CSC of the reduced system, upper triangle.
         let pose = key.pose;
         let nk = koff[nf];
@@ -427,19 +360,10 @@ impl BlockSystem {
         self.grad = vec![0.0; 12 * nf + if pose { 6 } else { 0 }];
         self.values = vec![0.0; row_idx.len()];
         self.rhs = vec![0.0; n];
-        self.chol = vec![[0.0; 81]; elim.len()];
-        self.w_vec = vec![[0.0; 9]; elim.len()];
-        self.w_mat = vec![0.0; w_len];
         self.elim_slot = elim_slot;
         self.koff = koff;
         self.blk_rowoff = blk_rowoff;
-        self.elim = elim;
-        self.t_start = t_start;
-        self.t_slots = t_slots;
-        self.t_blk = t_blk;
-        self.pair_start = pair_start;
-        self.pair_rowoff = pair_rowoff;
-        self.w_start = w_start;
+        self.elimination = elimination;
         self.col_start = col_start;
         self.rows = rows;
         self.col_ptr = col_ptr;
@@ -639,72 +563,21 @@ impl BlockSystem {
         for &p in &self.diag_pos {
             self.values[p] = damp(self.values[p]);
         }
-        // Eliminate the affine parts of the data-free nodes: S -= W^T W, rhs += W^T w with
-        // L L^T = H_AA (damped), W = L^-1 C, w = L^-1 g_A.
-        for (e, &s) in self.elim.iter().enumerate() {
-            let s = s as usize;
-            let (t0, t1) = (self.t_start[e], self.t_start[e + 1]);
-            let nt = t1 - t0;
-            let diag = &self.blocks[self.t_blk[t0].0 as usize];
-            let l = &mut self.chol[e];
-            for r in 0..9 {
-                for c in 0..=r {
-                    let v = diag[sym12(AFF[r], AFF[c])];
-                    l[r * 9 + c] = if r == c { damp(v) } else { v };
-                }
-            }
-            if !cholesky9(l) {
-                return Ok(false);
-            }
-            let wm = &mut self.w_mat[self.w_start[e]..self.w_start[e] + 27 * nt];
-            let width = 3 * nt;
-            for (q, &(idx, transposed)) in self.t_blk[t0..t1].iter().enumerate() {
-                let blk = &self.blocks[idx as usize];
-                for r in 0..9 {
-                    for (c, &tc) in KEEP_T.iter().enumerate() {
-                        wm[r * width + 3 * q + c] = if q == 0 {
-                            blk[sym12(AFF[r], tc)]
-                        } else if transposed {
-                            blk[AFF[r] * 12 + tc]
-                        } else {
-                            blk[tc * 12 + AFF[r]]
-                        };
-                    }
-                }
-            }
-            let wv = &mut self.w_vec[e];
-            for r in 0..9 {
-                wv[r] = self.grad[12 * s + AFF[r]];
-            }
-            forward9(l, wv, 1);
-            forward9(l, wm, width);
-            let t = &self.t_slots[t0..t1];
-            let pr = &self.pair_rowoff[self.pair_start[e]..self.pair_start[e] + nt * nt];
-            for (qb, &sb) in t.iter().enumerate() {
-                let cb = self.koff[sb as usize] + if self.elim_slot[sb as usize] { 0 } else { 9 };
-                for (qa, &sa) in t.iter().enumerate() {
-                    if sa > sb {
-                        continue;
-                    }
-                    let ra = if self.elim_slot[sa as usize] { 0 } else { 9 };
-                    let ro = pr[qa * nt + qb] as usize + ra;
-                    for c in 0..3 {
-                        let base = self.col_ptr[cb + c] + ro;
-                        let rmax = if sa == sb { c } else { 2 };
-                        for r in 0..=rmax {
-                            let mut acc = 0.0;
-                            for k in 0..9 {
-                                acc += wm[k * width + 3 * qa + r] * wm[k * width + 3 * qb + c];
-                            }
-                            self.values[base + r] -= acc;
-                        }
-                    }
-                }
-                for c in 0..3 {
-                    let acc: f64 = (0..9).map(|k| wm[k * width + 3 * qb + c] * wv[k]).sum();
-                    self.rhs[cb + c] += acc;
-                }
-            }
+        // Eliminate the affine parts of the data-free nodes.
+        let layout = Layout {
+            koff: &self.koff,
+            elim_slot: &self.elim_slot,
+        };
+        if !self.elimination.eliminate(
+            &self.blocks,
+            &self.grad,
+            &layout,
+            &self.col_ptr,
+            &mut self.values,
+            &mut self.rhs,
+            damp,
+        ) {
+            return Ok(false);
         }
         let symbolic = self
             .symbolic
@@ -735,8 +608,7 @@ impl BlockSystem {
             Par::Seq,
             MemStack::new(&mut self.scratch),
         );
-        // Back to the 12-layout: kept unknowns directly, eliminated ones by back-substitution
-        // dA = L^-T (-w - W dK).
+        // Back to the 12-layout: kept unknowns directly, eliminated ones by back-substitution.
         for s in 0..nf {
             for (kr, &or) in kept(self.elim_slot[s]).iter().enumerate() {
                 dx[12 * s + or] = self.rhs[self.koff[s] + kr];
@@ -745,81 +617,12 @@ impl BlockSystem {
         if self.key.pose {
             dx[12 * nf..].copy_from_slice(&self.rhs[nk..]);
         }
-        for (e, &s) in self.elim.iter().enumerate() {
-            let (t0, t1) = (self.t_start[e], self.t_start[e + 1]);
-            let width = 3 * (t1 - t0);
-            let wm = &self.w_mat[self.w_start[e]..self.w_start[e] + 9 * width];
-            let mut y = [0.0; 9];
-            for (r, yr) in y.iter_mut().enumerate() {
-                let mut acc = -self.w_vec[e][r];
-                for (q, &sq) in self.t_slots[t0..t1].iter().enumerate() {
-                    let b =
-                        self.koff[sq as usize] + if self.elim_slot[sq as usize] { 0 } else { 9 };
-                    for c in 0..3 {
-                        acc -= wm[r * width + 3 * q + c] * self.rhs[b + c];
-                    }
-                }
-                *yr = acc;
-            }
-            backward9(&self.chol[e], &mut y);
-            for r in 0..9 {
-                dx[12 * s as usize + AFF[r]] = y[r];
-            }
-        }
+        let layout = Layout {
+            koff: &self.koff,
+            elim_slot: &self.elim_slot,
+        };
+        self.elimination.back_substitute(&layout, &self.rhs, dx);
         Ok(dx.iter().all(|x| x.is_finite()))
-    }
-}
-
-/// In-place Cholesky of a symmetric positive definite 9x9 (row-major, lower triangle read and
-/// written). False when it is not positive definite.
-fn cholesky9(a: &mut [f64; 81]) -> bool {
-    for j in 0..9 {
-        let mut d = a[j * 9 + j];
-        for k in 0..j {
-            d -= a[j * 9 + k] * a[j * 9 + k];
-        }
-        if d.is_nan() || d <= 0.0 || d.is_infinite() {
-            return false;
-        }
-        let d = d.sqrt();
-        a[j * 9 + j] = d;
-        for i in j + 1..9 {
-            let mut v = a[i * 9 + j];
-            for k in 0..j {
-                v -= a[i * 9 + k] * a[j * 9 + k];
-            }
-            a[i * 9 + j] = v / d;
-        }
-    }
-    true
-}
-
-/// Solves L X = B in place for the 9 x `width` row-major B.
-fn forward9(l: &[f64; 81], b: &mut [f64], width: usize) {
-    for i in 0..9 {
-        let inv = 1.0 / l[i * 9 + i];
-        for k in 0..i {
-            let f = l[i * 9 + k];
-            if f != 0.0 {
-                for c in 0..width {
-                    b[i * width + c] -= f * b[k * width + c];
-                }
-            }
-        }
-        for c in 0..width {
-            b[i * width + c] *= inv;
-        }
-    }
-}
-
-/// Solves L^T x = y in place.
-fn backward9(l: &[f64; 81], y: &mut [f64; 9]) {
-    for i in (0..9).rev() {
-        let mut v = y[i];
-        for k in i + 1..9 {
-            v -= l[k * 9 + i] * y[k];
-        }
-        y[i] = v / l[i * 9 + i];
     }
 }
 
@@ -827,6 +630,7 @@ fn backward9(l: &[f64; 81], y: &mut [f64; 9]) {
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
+    use crate::schur::AFF;
     use misslam_framework::nalgebra::{DMatrix, DVector};
 
     /// A small deterministic generator (xorshift) for the test's random system.
