@@ -186,14 +186,19 @@ fn warped(
     deg: f32,
     scale: f32,
 ) -> (Vec<u8>, impl Fn(f32, f32) -> (f32, f32)) {
+    let b = t.render(w, h, unwarp(w, h, deg, scale));
+    (b, similarity(w, h, deg, scale))
+}
+
+/// The inverse of [`similarity`]: pixel (u, v) of the warped copy shows point
+/// R^-1 (p - centre) / scale + centre of the image.
+fn unwarp(w: usize, h: usize, deg: f32, scale: f32) -> impl Fn(f32, f32) -> (f32, f32) {
     let (cx, cy) = (w as f32 / 2.0, h as f32 / 2.0);
     let (s, c) = deg.to_radians().sin_cos();
-    // Pixel (u, v) of B shows the texture at R^-1 (p - centre) / scale + centre.
-    let b = t.render(w, h, |u, v| {
+    move |u: f32, v: f32| {
         let (x, y) = ((u - cx) / scale, (v - cy) / scale);
         (c * x + s * y + cx, -s * x + c * y + cy)
-    });
-    (b, similarity(w, h, deg, scale))
+    }
 }
 
 /// The map from an image to its copy rotated by `deg` and scaled by `scale` about the centre.
@@ -361,14 +366,12 @@ fn warp_image(
     deg: f32,
     scale: f32,
 ) -> (Vec<u8>, impl Fn(f32, f32) -> (f32, f32)) {
-    let (cx, cy) = (w as f32 / 2.0, h as f32 / 2.0);
-    let (s, c) = deg.to_radians().sin_cos();
     let at = |x: usize, y: usize| img[y * w + x] as f32;
+    let back = unwarp(w, h, deg, scale);
     let mut out = vec![0u8; w * h];
     for v in 0..h {
         for u in 0..w {
-            let (x, y) = ((u as f32 - cx) / scale, (v as f32 - cy) / scale);
-            let (sx, sy) = (c * x + s * y + cx, -s * x + c * y + cy);
+            let (sx, sy) = back(u as f32, v as f32);
             if sx < 0.0 || sy < 0.0 || sx >= (w - 1) as f32 || sy >= (h - 1) as f32 {
                 continue;
             }

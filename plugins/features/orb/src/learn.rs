@@ -132,10 +132,6 @@ fn bits(t: &[i8; 4], patches: &[Patch]) -> Vec<u64> {
     out
 }
 
-fn ones(v: &[u64]) -> u64 {
-    v.iter().map(|w| w.count_ones() as u64).sum()
-}
-
 /// Pearson correlation of two binary tests from their bit vectors and means over `n` patches.
 fn correlation(a: &[u64], b: &[u64], ma: f64, mb: f64, n: f64) -> f64 {
     let both = a
@@ -188,8 +184,9 @@ pub fn learn(patches: &[Patch], p: &LearnParams) -> Result<Learned, String> {
             .total_cmp(&(mean[b] - 0.5).abs())
             .then(a.cmp(&b))
     });
-    // Bit vectors are computed when a candidate is first considered, and kept across passes.
-    let mut cache: Vec<Option<Vec<u64>>> = vec![None; cand.len()];
+    // Bit vectors are computed when a candidate is first considered (empty until then: a
+    // computed one has a word per 64 patches), and kept across passes.
+    let mut cache: Vec<Vec<u64>> = vec![Vec::new(); cand.len()];
     let mut threshold = p.threshold;
     loop {
         let mut taken: Vec<usize> = Vec::with_capacity(p.tests);
@@ -199,13 +196,11 @@ pub fn learn(patches: &[Patch], p: &LearnParams) -> Result<Learned, String> {
                 break;
             }
             considered += 1;
-            if cache[c].is_none() {
-                cache[c] = Some(bits(&cand[c], patches));
+            if cache[c].is_empty() {
+                cache[c] = bits(&cand[c], patches);
             }
-            let bc = cache[c].as_deref().unwrap_or_default();
             let fits = taken.iter().all(|&t| {
-                let bt = cache[t].as_deref().unwrap_or_default();
-                correlation(bc, bt, mean[c], mean[t], n).abs() <= threshold
+                correlation(&cache[c], &cache[t], mean[c], mean[t], n).abs() <= threshold
             });
             if fits {
                 taken.push(c);
@@ -215,15 +210,10 @@ pub fn learn(patches: &[Patch], p: &LearnParams) -> Result<Learned, String> {
             let mut max_correlation = 0.0f64;
             for (i, &a) in taken.iter().enumerate() {
                 for &b in &taken[i + 1..] {
-                    let (ba, bb) = (
-                        cache[a].as_deref().unwrap_or_default(),
-                        cache[b].as_deref().unwrap_or_default(),
-                    );
-                    max_correlation =
-                        max_correlation.max(correlation(ba, bb, mean[a], mean[b], n).abs());
+                    let r = correlation(&cache[a], &cache[b], mean[a], mean[b], n);
+                    max_correlation = max_correlation.max(r.abs());
                 }
             }
-            debug_assert!(ones(cache[taken[0]].as_deref().unwrap_or_default()) > 0);
             return Ok(Learned {
                 tests: taken.iter().map(|&c| cand[c]).collect(),
                 threshold,
@@ -242,6 +232,10 @@ pub fn learn(patches: &[Patch], p: &LearnParams) -> Result<Learned, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn ones(v: &[u64]) -> u64 {
+        v.iter().map(|w| w.count_ones() as u64).sum()
+    }
 
     /// Patches of smooth random blobs (a few Gaussians of random sign and place), so tests close
     /// together agree and tests far apart do not.

@@ -338,7 +338,7 @@ impl Tracker {
                 cand = self.brute(r, features, cam)?;
                 est = estimate(cam, &cand.obs, &ransac, frame);
             }
-            if let Some(e) = &est {
+            if let Some(e) = est {
                 if (e.inlier_count as f32) < self.params.min_kept * self.last_inliers as f32 {
                     let reason = format!(
                         "the inliers fell from {} to {} in one frame (blurred, occluded or dark \
@@ -347,8 +347,6 @@ impl Tracker {
                     );
                     return Ok(self.lose(reason));
                 }
-            }
-            if let Some(e) = est {
                 let kf = &mut self.keyframes[r];
                 if kf.reference_inliers == 0 {
                     kf.reference_inliers = e.inlier_count;
