@@ -701,6 +701,105 @@ pub fn elas(
     })
 }
 
+/// `misslam bench sgm`: the CPU SGM on one pair, the median of each stage ([`sgm_cpu`]).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct SgmCpuBench {
+    /// Image width, px.
+    pub width: usize,
+    /// Image height, px.
+    pub height: usize,
+    /// Disparities searched.
+    pub disparities: u32,
+    /// Paths (4 or 8).
+    pub paths: u32,
+    /// Rayon's threads.
+    pub threads: usize,
+    /// Timed runs (after one warm-up run).
+    pub runs: usize,
+    /// Median wall time of one pair, ms.
+    pub ms: f64,
+    /// Fastest of the same runs, ms.
+    pub min_ms: f64,
+    /// Median of each stage over the same runs, ms.
+    pub stages_ms: misslam_depth_sgm::sgm::SgmTiming,
+    /// Valid pixels of the output, % of all.
+    pub density_pct: f64,
+}
+
+/// Loads a gray pair (or makes the random-dot pair of `size`), checking that the sizes agree.
+fn sgm_pair(
+    pair: Option<(&Path, &Path)>,
+    size: (usize, usize),
+    nd: u32,
+) -> Result<(usize, usize, Vec<u8>, Vec<u8>), String> {
+    match pair {
+        Some((l, r)) => {
+            let (w, h, left) = gray_image(l)?;
+            let (w2, h2, right) = gray_image(r)?;
+            if (w, h) != (w2, h2) {
+                return Err(format!(
+                    "{} is {w}x{h} but {} is {w2}x{h2}",
+                    l.display(),
+                    r.display()
+                ));
+            }
+            Ok((w as usize, h as usize, left, right))
+        }
+        None => {
+            let (l, r) = random_dot_pair(size.0, size.1, nd);
+            Ok((size.0, size.1, l, r))
+        }
+    }
+}
+
+/// The CPU SGM ([`misslam_depth_sgm::sgm::sgm`]) on a pair, with the threads rayon has: the
+/// median time per pair and of each stage over `repeat` runs after a warm-up run.
+pub fn sgm_cpu(
+    pair: Option<(&Path, &Path)>,
+    size: (usize, usize),
+    p: &misslam_depth_sgm::sgm::SgmParams,
+    repeat: usize,
+) -> Result<SgmCpuBench, String> {
+    use misslam_depth_sgm::sgm::{sgm, Scratch, SgmTiming};
+    let (w, h, left, right) = sgm_pair(pair, size, p.max_disparity)?;
+    let mut scratch = Scratch::default();
+    let mut out = sgm(&left, &right, w, h, None, p, &mut scratch)?;
+    let mut stages: Vec<SgmTiming> = Vec::new();
+    let mut totals = Vec::new();
+    let ms = median_ms(repeat, || {
+        let t = Instant::now();
+        out = sgm(&left, &right, w, h, None, p, &mut scratch)?;
+        totals.push(t.elapsed().as_secs_f64() * 1e3);
+        stages.push(scratch.last_timing());
+        Ok::<(), String>(())
+    })?;
+    let med = |f: &dyn Fn(&SgmTiming) -> f64| {
+        let mut v: Vec<f64> = stages.iter().map(f).collect();
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let stages_ms = SgmTiming {
+        census_ms: med(&|t| t.census_ms),
+        forward_ms: med(&|t| t.forward_ms),
+        backward_select_ms: med(&|t| t.backward_select_ms),
+        finish_ms: med(&|t| t.finish_ms),
+        total_ms: med(&|t| t.total_ms),
+    };
+    let valid = out.iter().filter(|v| v.is_finite()).count();
+    Ok(SgmCpuBench {
+        width: w,
+        height: h,
+        disparities: p.max_disparity,
+        paths: p.paths,
+        threads: rayon::current_num_threads(),
+        runs: repeat.max(1),
+        ms,
+        min_ms: totals.iter().copied().fold(f64::INFINITY, f64::min),
+        stages_ms,
+        density_pct: 100.0 * valid as f64 / (w * h) as f64,
+    })
+}
+
 /// `misslam bench sgm-gpu`: the WGSL SGM against the CPU path on the same pair in the same run
 /// ([`sgm_gpu`]).
 #[derive(Debug, Clone, serde::Serialize)]
@@ -799,24 +898,7 @@ pub fn sgm_gpu(
 ) -> Result<SgmGpuBench, String> {
     use misslam_depth_sgm::gpu::{SgmGpu, SgmGpuTiming};
     use misslam_depth_sgm::sgm::{sgm, Scratch};
-    let (w, h, left, right) = match pair {
-        Some((l, r)) => {
-            let (w, h, left) = gray_image(l)?;
-            let (w2, h2, right) = gray_image(r)?;
-            if (w, h) != (w2, h2) {
-                return Err(format!(
-                    "{} is {w}x{h} but {} is {w2}x{h2}",
-                    l.display(),
-                    r.display()
-                ));
-            }
-            (w as usize, h as usize, left, right)
-        }
-        None => {
-            let (l, r) = random_dot_pair(size.0, size.1, p.max_disparity);
-            (size.0, size.1, l, r)
-        }
-    };
+    let (w, h, left, right) = sgm_pair(pair, size, p.max_disparity)?;
     let ctx = misslam_framework::gpu::GpuProvider::new()
         .get()
         .map_err(|e| e.to_string())?;

@@ -178,6 +178,35 @@ enum BenchCommand {
         #[arg(long)]
         out: Option<PathBuf>,
     },
+    /// SGM on the CPU: the median time per pair and of each stage (census, forward pass,
+    /// backward pass with the selection, left-right check with median and speckles); threads as
+    /// RAYON_NUM_THREADS says.
+    Sgm {
+        /// Left image (PNG, PGM; converted to gray); without it a random-dot pair is made.
+        #[arg(long, requires = "right")]
+        left: Option<PathBuf>,
+        /// Right image.
+        #[arg(long, requires = "left")]
+        right: Option<PathBuf>,
+        /// Width of the random-dot pair.
+        #[arg(long, default_value_t = 640)]
+        width: usize,
+        /// Height of the random-dot pair.
+        #[arg(long, default_value_t = 480)]
+        height: usize,
+        /// Disparities searched.
+        #[arg(long, default_value_t = 64)]
+        disparities: u32,
+        /// Aggregation paths, 4 or 8.
+        #[arg(long, default_value_t = 8)]
+        paths: u32,
+        /// Timed runs (medians are reported).
+        #[arg(long, default_value_t = 20)]
+        repeat: usize,
+        /// Write the figures as JSON here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// SGM on the GPU (WGSL kernels) against the CPU path on the same pair in the same run:
     /// median ms per pair (upload and readback included), the stage breakdown, the parity.
     SgmGpu {
@@ -394,6 +423,41 @@ fn run(command: Command) -> anyhow::Result<()> {
             }
             if let Some(path) = out {
                 write_json(&path, &rows)?;
+            }
+            Ok(())
+        }
+        Command::Bench {
+            which:
+                BenchCommand::Sgm {
+                    left,
+                    right,
+                    width,
+                    height,
+                    disparities,
+                    paths,
+                    repeat,
+                    out,
+                },
+        } => {
+            let p = misslam_depth_sgm::sgm::SgmParams {
+                max_disparity: disparities,
+                paths,
+                ..Default::default()
+            };
+            let pair = left.as_deref().zip(right.as_deref());
+            let r = misslam::bench::sgm_cpu(pair, (width, height), &p, repeat)
+                .map_err(anyhow::Error::msg)?;
+            let s = &r.stages_ms;
+            println!(
+                "SGM {}x{}, {} disparities, {} paths, {} threads: {:.1} ms per pair (median of {}, fastest {:.1}); density {:.1} %",
+                r.width, r.height, r.disparities, r.paths, r.threads, r.ms, r.runs, r.min_ms, r.density_pct
+            );
+            println!(
+                "stages: census {:.2}, forward {:.2}, backward + select {:.2}, finish {:.2}, total {:.2} ms",
+                s.census_ms, s.forward_ms, s.backward_select_ms, s.finish_ms, s.total_ms
+            );
+            if let Some(path) = out {
+                write_json(&path, &r)?;
             }
             Ok(())
         }

@@ -256,3 +256,59 @@ fn eval_recon_scores_a_saved_model_against_a_gt_mesh_exactly() {
     let e = misslam::eval_cli::eval_recon(&gt, &est).unwrap_err();
     assert!(e.contains("triangles"), "{e}");
 }
+
+#[test]
+fn sgm_bench_reports_its_stages_and_names_a_pair_that_does_not_fit() {
+    let dir = common::tmp_dir("bench-sgm");
+    let json = dir.join("sgm.json");
+    let out = misslam()
+        .args([
+            "bench", "sgm", "--width", "96", "--height", "40", "--repeat", "3", "--out",
+        ])
+        .arg(&json)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(
+        (r["width"].as_u64(), r["height"].as_u64()),
+        (Some(96), Some(40))
+    );
+    assert_eq!(r["runs"], 3);
+    // The random-dot pair is textured everywhere: most pixels get a disparity.
+    assert!(r["density_pct"].as_f64().unwrap() > 60.0, "{r}");
+    let s = &r["stages_ms"];
+    let stage = |k: &str| s[k].as_f64().unwrap();
+    let parts = stage("census_ms") + stage("forward_ms") + stage("backward_select_ms");
+    for k in ["census_ms", "forward_ms", "backward_select_ms", "finish_ms"] {
+        assert!(stage(k) >= 0.0, "{k}: {s}");
+    }
+    // The stages are disjoint parts of the call.
+    assert!(
+        parts + stage("finish_ms") <= stage("total_ms") * 1.001 + 1e-3,
+        "{s}"
+    );
+
+    let left = dir.join("l.png");
+    let right = dir.join("r.png");
+    image::GrayImage::new(32, 20).save(&left).unwrap();
+    image::GrayImage::new(30, 20).save(&right).unwrap();
+    let bad = misslam()
+        .args(["bench", "sgm", "--left"])
+        .arg(&left)
+        .arg("--right")
+        .arg(&right)
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(
+        err.contains("l.png is 32x20 but") && err.contains("r.png is 30x20"),
+        "{err}"
+    );
+}

@@ -35,7 +35,7 @@ pub(crate) struct PassScratch {
 impl PassScratch {
     /// Sizes and resets the buffers for a pass with `nv` paths from the previous row.
     pub(crate) fn begin(&mut self, ctx: &Ctx, nv: usize) {
-        let (w, nd, dp) = (ctx.w, ctx.nd, ctx.dp);
+        let (w, dp) = (ctx.w, ctx.dp);
         self.paths.clear();
         push_paths(&mut self.paths, nv * (w + 2), dp);
         self.mins.clear();
@@ -46,9 +46,23 @@ impl PassScratch {
         self.holding.resize(dp, 0);
         self.cost.clear();
         self.cost.resize(w * dp, FAR);
-        let pad = nd + ctx.p.min_disparity.unsigned_abs() as usize + 1;
+        // LANES more at the end: the SIMD costs read whole chunks of candidates.
         self.rev.clear();
-        self.rev.resize(w + 2 * pad, 0);
+        self.rev.resize(w + 2 * ctx.rev_pad() + LANES, 0);
+    }
+
+    /// Sizes and resets the buffers for the AVX2 pass (see [`crate::aggregate_avx2`]): two row
+    /// buffers of `nv` paths (each as in [`Self::begin`]), two halves of minima, and two slots
+    /// for the path along the row.
+    #[cfg(target_arch = "x86_64")]
+    pub(crate) fn begin_double(&mut self, ctx: &Ctx, nv: usize) {
+        self.begin(ctx, nv);
+        self.paths.clear();
+        push_paths(&mut self.paths, 2 * nv * (ctx.w + 2), ctx.dp);
+        self.mins.clear();
+        self.mins.resize(2 * nv * (ctx.w + 2), 0);
+        self.row_path.clear();
+        push_paths(&mut self.row_path, 2, ctx.dp);
     }
 
     /// Starts row `y`: its matching costs, and the path along the row from zero at the border
@@ -81,13 +95,26 @@ impl PassScratch {
     /// the caller's target features (POPCNT) apply.
     #[inline(always)]
     pub(crate) fn row_costs(&mut self, ctx: &Ctx, y: usize, costs: &mut Costs) {
+        self.row_costs_with(ctx, y, costs, cost_row);
+    }
+
+    /// [`Self::row_costs`] with the Hamming costs of a row computed by `compute` (a SIMD
+    /// version of [`cost_row`]).
+    #[inline(always)]
+    pub(crate) fn row_costs_with(
+        &mut self,
+        ctx: &Ctx,
+        y: usize,
+        costs: &mut Costs,
+        compute: impl Fn(&Ctx, usize, usize, i16, &mut [u64], &mut [i16]),
+    ) {
         let (w, nd, dp) = (ctx.w, ctx.nd, ctx.dp);
-        let pad = nd + ctx.p.min_disparity.unsigned_abs() as usize + 1;
+        let pad = ctx.rev_pad();
         let unknown = i16::from(ctx.p.unknown_cost());
         match costs {
-            Costs::Compute => cost_row(ctx, y, pad, unknown, &mut self.rev, &mut self.cost),
+            Costs::Compute => compute(ctx, y, pad, unknown, &mut self.rev, &mut self.cost),
             Costs::Store(vol) => {
-                cost_row(ctx, y, pad, unknown, &mut self.rev, &mut self.cost);
+                compute(ctx, y, pad, unknown, &mut self.rev, &mut self.cost);
                 let dst = &mut vol[y * w * nd..(y + 1) * w * nd];
                 for (d, c) in dst.chunks_exact_mut(nd).zip(self.cost.chunks_exact(dp)) {
                     for (o, &v) in d.iter_mut().zip(c) {
@@ -156,6 +183,11 @@ pub(crate) struct Ctx<'a> {
 impl Ctx<'_> {
     pub(crate) fn stride(&self) -> usize {
         GUARD + self.dp
+    }
+
+    /// Entries on each side of the reversed right census row (see [`cost_row`]).
+    pub(crate) fn rev_pad(&self) -> usize {
+        self.nd + self.p.min_disparity.unsigned_abs() as usize + 1
     }
 
     /// P2 between a pixel of gray level `g` and its predecessor (xp, yp) on a path; 0 when the
@@ -385,7 +417,14 @@ fn pass_n<const NV: usize>(
 /// Hamming costs of row `y` for every pixel and disparity into `cost` (W x D', padding lanes
 /// untouched at FAR); a partner outside the right image costs `unknown`.
 #[inline(always)]
-fn cost_row(ctx: &Ctx, y: usize, pad: usize, unknown: i16, rev: &mut [u64], cost: &mut [i16]) {
+pub(crate) fn cost_row(
+    ctx: &Ctx,
+    y: usize,
+    pad: usize,
+    unknown: i16,
+    rev: &mut [u64],
+    cost: &mut [i16],
+) {
     let (w, nd, dp) = (ctx.w, ctx.nd, ctx.dp);
     let dmin = ctx.p.min_disparity as isize;
     let cr = &ctx.cr[y * w..(y + 1) * w];

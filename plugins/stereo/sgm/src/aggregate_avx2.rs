@@ -1,8 +1,11 @@
-//! The aggregation pass of [`crate::aggregate`] in AVX2 registers: the same recurrence, the
-//! same buffers and the same order of work, written with raw pointers so the inner loop is the
-//! arithmetic alone (no bounds checks, no reloads of the buffers' addresses, the broadcasts
-//! hoisted out of the disparity loop, the minimum over d by `minpos`, and the sums started
-//! from `init` or zero by the first path instead of a copy).
+//! The aggregation pass of [`crate::aggregate`] in AVX2 registers: the same recurrence and the
+//! same sums, with all the paths of a pixel advanced together, 16 disparities at a time. Per
+//! chunk the matching costs and the running sum are loaded once and stored once, and each path
+//! reads its previous L at d - 1, d and d + 1 by three unaligned loads (no lane shuffles). For
+//! that the previous row of the paths is double-buffered (read one row buffer, write the other)
+//! and so is the path along the row (two slots, alternating by pixel), so no L is overwritten
+//! while it may still be read. The Hamming costs of a row are computed 16 disparities at a time
+//! too (nibble-table popcounts, [`cost_row`]).
 
 use std::arch::x86_64::*;
 
@@ -19,10 +22,11 @@ pub(crate) fn pass(
     out: &mut [i16],
     after_row: impl FnMut(usize, &mut [i16]),
 ) {
-    if ctx.vdx.len() == 3 {
-        pass_n::<3>(forward, ctx, ps, init, costs, out, after_row);
-    } else {
-        pass_n::<1>(forward, ctx, ps, init, costs, out, after_row);
+    match (ctx.vdx.len(), init.is_some()) {
+        (3, true) => pass_n::<3, 4, true>(forward, ctx, ps, init, costs, out, after_row),
+        (3, false) => pass_n::<3, 4, false>(forward, ctx, ps, init, costs, out, after_row),
+        (_, true) => pass_n::<1, 2, true>(forward, ctx, ps, init, costs, out, after_row),
+        (_, false) => pass_n::<1, 2, false>(forward, ctx, ps, init, costs, out, after_row),
     }
 }
 
@@ -34,102 +38,73 @@ fn hmin(v: __m256i) -> i16 {
     _mm_cvtsi128_si32(_mm_minpos_epu16(m)) as i16
 }
 
-/// The recurrence on 16 disparities from the previous L at d - 16.. (`lo`), d.. (`a`) and
-/// d + 16.. (`hi`): `cost + min(a, a[d-1] + p1, a[d+1] + p1, jump) - min_prev`.
-#[target_feature(enable = "avx2")]
-#[inline]
-fn step(
-    c: __m256i,
-    lo: __m256i,
-    a: __m256i,
-    hi: __m256i,
-    p1: __m256i,
-    jump: __m256i,
-    min_prev: __m256i,
-) -> __m256i {
-    let am = _mm256_alignr_epi8::<14>(a, _mm256_permute2x128_si256::<0x21>(lo, a));
-    let ap = _mm256_alignr_epi8::<2>(_mm256_permute2x128_si256::<0x21>(a, hi), a);
-    let best = _mm256_min_epi16(
-        _mm256_min_epi16(a, jump),
-        _mm256_min_epi16(_mm256_adds_epi16(am, p1), _mm256_adds_epi16(ap, p1)),
-    );
-    _mm256_adds_epi16(c, _mm256_sub_epi16(best, min_prev))
+/// Where the `NP` paths of one pixel read their previous L and write the new one (pointers at
+/// d = 0 of a segment with a guard lane at FAR before it and one after its last chunk), and
+/// their `min(prev) + P2` and `min(prev)`, broadcast.
+struct Paths<const NP: usize> {
+    src: [*const i16; NP],
+    dst: [*mut i16; NP],
+    jump: [__m256i; NP],
+    min_prev: [__m256i; NP],
 }
 
-/// One path over the D' disparities of one pixel. `prev` points at the previous pixel's L (d =
-/// 0; GUARD lanes at FAR before it, and after the last chunk). The new L goes to `dst`, or, for
-/// a delayed path, to `holding` while `held` (when given) overwrites `prev` chunk by chunk once
-/// read. `acc_in` gives the sums the path adds to (written to `acc`). Returns min over d of L.
+/// Advances the `NP` paths of one pixel over its `chunks` x 16 disparities: each path's
+/// `L = C + min(Lp[d], Lp[d-1] + P1, Lp[d+1] + P1, min(Lp) + P2) - min(Lp)` goes to its `dst`,
+/// and `acc = init (INIT) or 0, plus the sum of the new L` over the paths. Returns each path's
+/// minimum over d.
 ///
 /// # Safety
-/// `prev - GUARD .. prev + chunks * LANES + LANES`, and `chunks * LANES` lanes from `cost`,
-/// `acc_in`, `acc`, the slot, `held` and `holding`, are valid.
+/// `chunks * LANES` lanes from `cost`, `acc`, `init` (INIT) and each `dst` are valid, and each
+/// `src - 1 .. src + chunks * LANES + 1`; no `dst` overlaps a `src`.
 #[target_feature(enable = "avx2")]
 #[inline]
-#[allow(clippy::too_many_arguments)]
-unsafe fn path(
+unsafe fn pixel<const NP: usize, const INIT: bool>(
     chunks: usize,
-    prev: *mut i16,
     cost: *const i16,
-    acc_in: Option<*const i16>,
+    init: *const i16,
     acc: *mut i16,
-    dst: Dst,
+    paths: &Paths<NP>,
     p1: __m256i,
-    jump: i16,
-    min_prev: i16,
-) -> i16 {
-    // SAFETY: the caller guarantees the pointers' extents (see the doc above).
+) -> [i16; NP] {
+    // SAFETY: the caller guarantees the extents (see the doc above).
     unsafe {
-        let (jump, mp) = (_mm256_set1_epi16(jump), _mm256_set1_epi16(min_prev));
-        let (mut lo, mut a) = (
-            _mm256_loadu_si256(prev.sub(LANES).cast()),
-            _mm256_loadu_si256(prev.cast()),
-        );
-        let mut mn = _mm256_set1_epi16(FAR);
+        let mut mn = [_mm256_set1_epi16(FAR); NP];
         for q in 0..chunks {
             let at = q * LANES;
-            let hi = _mm256_loadu_si256(prev.add(at + LANES).cast());
             let c = _mm256_loadu_si256(cost.add(at).cast());
-            let l = step(c, lo, a, hi, p1, jump, mp);
-            mn = _mm256_min_epi16(mn, l);
-            let base = match acc_in {
-                Some(src) => _mm256_loadu_si256(src.add(at).cast()),
-                None => _mm256_setzero_si256(),
+            let mut sum = if INIT {
+                _mm256_loadu_si256(init.add(at).cast())
+            } else {
+                _mm256_setzero_si256()
             };
-            _mm256_storeu_si256(acc.add(at).cast(), _mm256_adds_epi16(base, l));
-            match dst {
-                Dst::Slot(d) => _mm256_storeu_si256(d.add(at).cast(), l),
-                Dst::Delayed { held, holding } => {
-                    if let Some(h) = held {
-                        _mm256_storeu_si256(
-                            prev.add(at).cast(),
-                            _mm256_loadu_si256(h.add(at).cast()),
-                        );
-                    }
-                    _mm256_storeu_si256(holding.add(at).cast(), l);
-                }
+            for (v, m) in mn.iter_mut().enumerate() {
+                let s = paths.src[v].add(at);
+                let a = _mm256_loadu_si256(s.cast());
+                let am = _mm256_loadu_si256(s.sub(1).cast());
+                let ap = _mm256_loadu_si256(s.add(1).cast());
+                let best = _mm256_min_epi16(
+                    _mm256_min_epi16(a, paths.jump[v]),
+                    _mm256_min_epi16(_mm256_adds_epi16(am, p1), _mm256_adds_epi16(ap, p1)),
+                );
+                let l = _mm256_adds_epi16(c, _mm256_sub_epi16(best, paths.min_prev[v]));
+                *m = _mm256_min_epi16(*m, l);
+                sum = _mm256_adds_epi16(sum, l);
+                _mm256_storeu_si256(paths.dst[v].add(at).cast(), l);
             }
-            (lo, a) = (a, hi);
+            _mm256_storeu_si256(acc.add(at).cast(), sum);
         }
-        hmin(mn)
+        let mut out = [0i16; NP];
+        for (o, m) in out.iter_mut().zip(mn) {
+            *o = hmin(m);
+        }
+        out
     }
 }
 
-/// Where a path's new L goes.
-#[derive(Clone, Copy)]
-enum Dst {
-    /// Its own slot.
-    Slot(*mut i16),
-    /// Held back a pixel (see [`crate::aggregate`]'s `pass_n`).
-    Delayed {
-        held: Option<*const i16>,
-        holding: *mut i16,
-    },
-}
-
+/// NV paths from the previous row plus the path along the row (NP = NV + 1).
 #[target_feature(enable = "avx2,popcnt")]
 #[inline]
-fn pass_n<const NV: usize>(
+fn pass_n<const NV: usize, const NP: usize, const INIT: bool>(
     forward: bool,
     ctx: &Ctx,
     ps: &mut PassScratch,
@@ -138,111 +113,184 @@ fn pass_n<const NV: usize>(
     out: &mut [i16],
     mut after_row: impl FnMut(usize, &mut [i16]),
 ) {
-    let (w, h, dp, p) = (ctx.w, ctx.h, ctx.dp, ctx.p);
+    assert_eq!(NP, NV + 1);
+    let (w, h, dp) = (ctx.w, ctx.h, ctx.dp);
     let stride = ctx.stride();
     let chunks = dp / LANES;
     let mut vdx = [0isize; NV];
     vdx.copy_from_slice(ctx.vdx);
-    let step_x: isize = if forward { 1 } else { -1 };
     let row_len = w * dp;
     let whole = out.len() == h * row_len;
+    let init = if INIT { init } else { None };
     assert!(out.len() >= row_len && init.is_none_or(|s| s.len() >= h * row_len));
-    ps.begin(ctx, NV);
-    assert_eq!(ps.paths.len(), NV * (w + 2) * stride + GUARD);
-    assert!(ps.mins.len() == NV * (w + 2) && ps.held.len() == dp && ps.holding.len() == dp);
+    ps.begin_double(ctx, NV);
+    let half = NV * (w + 2) * stride;
+    assert_eq!(ps.paths.len(), 2 * half + GUARD);
+    assert!(ps.mins.len() == 2 * NV * (w + 2) && ps.row_path.len() == 2 * stride + GUARD);
     assert_eq!(ps.cost.len(), row_len);
-    let p1 = _mm256_set1_epi16(p.p1 as i16);
-    let delayed_v = vdx.iter().position(|&dx| dx == step_x);
+    let p1 = _mm256_set1_epi16(ctx.p.p1 as i16);
     for k in 0..h {
         let y = if forward { k } else { h - 1 - k };
-        ps.start_row(ctx, y, &mut costs);
+        ps.row_costs_with(ctx, y, &mut costs, |c, y, pad, unknown, rev, cost| {
+            // SAFETY: this pass only runs where AVX2 and POPCNT were detected.
+            unsafe { cost_row(c, y, pad, unknown, rev, cost) }
+        });
+        // The path along the row starts from zero (L = C at the border).
+        ps.row_path[GUARD..GUARD + dp].fill(0);
+        let (rd, wr) = (k % 2, (k + 1) % 2);
         let mut row_min = 0i16;
-        let mut held_min = 0i16;
         let prev_y = if forward { y.wrapping_sub(1) } else { y + 1 };
         let o = if whole { y * row_len } else { 0 };
         let out_row = &mut out[o..o + row_len];
         let img_row = &ctx.img[y * w..(y + 1) * w];
+        let (mins_rd, mins_wr) = ps.mins.split_at_mut(NV * (w + 2));
+        let (mins_rd, mins_wr) = if rd == 0 {
+            (&*mins_rd, mins_wr)
+        } else {
+            (&*mins_wr, mins_rd)
+        };
         let paths = ps.paths.as_mut_ptr();
         let row_path = ps.row_path.as_mut_ptr();
         let cost_row = ps.cost.as_ptr();
         let acc_row = out_row.as_mut_ptr();
-        let init_row = init.map(|s| s[y * row_len..(y + 1) * row_len].as_ptr());
+        let init_row = init.map_or(std::ptr::null(), |s| s[y * row_len..].as_ptr());
         for j in 0..w {
             let x = if forward { j } else { w - 1 - j };
             let g = img_row[x];
-            // Swapped after every pixel.
-            let (held, holding) = (ps.held.as_ptr(), ps.holding.as_mut_ptr());
             let p2_from = |xp: usize, yp: usize| ctx.p2_from(g, xp, yp);
-            // SAFETY: x < w; the cell x * dp.. of the cost row, the sums and `init` hold dp
-            // lanes; path slots s <= w + 1 of NV segments of `stride` lanes (plus a trailing
-            // guard) lie in `paths` (sized by `begin`), held and holding hold dp lanes, and
-            // the row path one guarded segment.
+            let zero = _mm256_setzero_si256();
+            let mut pp = Paths::<NP> {
+                src: [std::ptr::null(); NP],
+                dst: [std::ptr::null_mut(); NP],
+                jump: [zero; NP],
+                min_prev: [zero; NP],
+            };
+            // SAFETY: slots s <= w + 1 of NV segments of `stride` lanes lie in each half of
+            // `paths` (sized by `begin_double`, with a trailing guard), the row path holds two
+            // guarded slots, and the cell x * dp.. of the cost row, the sums and `init` holds
+            // dp lanes. The read half and the written half are disjoint, and so are the two
+            // row-path slots.
             unsafe {
-                let cost = cost_row.add(x * dp);
-                let acc = acc_row.add(x * dp);
-                let acc_in = init_row.map(|r| r.add(x * dp));
-                for (v, &dx) in vdx.iter().enumerate() {
-                    let s = (x as isize - dx + 1) as usize;
-                    let mins_at = v * (w + 2);
-                    let min_prev = ps.mins[mins_at + s];
+                for v in 0..NV {
+                    // Slot of the previous pixel on this path: x - dx, shifted by the zero slot.
+                    let s = (x as isize - vdx[v] + 1) as usize;
+                    let mp = mins_rd[v * (w + 2) + s];
                     let p2 = if k == 0 {
                         0
                     } else {
                         p2_from(s.wrapping_sub(1), prev_y)
                     };
-                    let prev = paths.add((s * NV + v) * stride + GUARD);
-                    let dst = if delayed_v == Some(v) {
-                        Dst::Delayed {
-                            held: (j > 0).then_some(held),
-                            holding,
-                        }
-                    } else {
-                        Dst::Slot(paths.add(((x + 1) * NV + v) * stride + GUARD))
-                    };
-                    let new_min = path(
-                        chunks,
-                        prev,
-                        cost,
-                        if v == 0 {
-                            acc_in
-                        } else {
-                            Some(acc.cast_const())
-                        },
-                        acc,
-                        dst,
-                        p1,
-                        min_prev + p2,
-                        min_prev,
-                    );
-                    if delayed_v == Some(v) {
-                        if j > 0 {
-                            ps.mins[mins_at + s] = held_min;
-                        }
-                        held_min = new_min;
-                    } else {
-                        ps.mins[mins_at + x + 1] = new_min;
-                    }
+                    pp.src[v] = paths.add(rd * half + (s * NV + v) * stride + GUARD);
+                    pp.dst[v] = paths.add(wr * half + ((x + 1) * NV + v) * stride + GUARD);
+                    pp.jump[v] = _mm256_set1_epi16(mp + p2);
+                    pp.min_prev[v] = _mm256_set1_epi16(mp);
                 }
                 let xh = if forward { x.wrapping_sub(1) } else { x + 1 };
                 let jump_h = row_min + if j == 0 { 0 } else { p2_from(xh, y) };
-                let rp = row_path.add(GUARD);
-                row_min = path(
+                pp.src[NV] = row_path.add((j % 2) * stride + GUARD);
+                pp.dst[NV] = row_path.add(((j + 1) % 2) * stride + GUARD);
+                pp.jump[NV] = _mm256_set1_epi16(jump_h);
+                pp.min_prev[NV] = _mm256_set1_epi16(row_min);
+                let mins = pixel::<NP, INIT>(
                     chunks,
-                    rp,
-                    cost,
-                    Some(acc.cast_const()),
-                    acc,
-                    Dst::Slot(rp),
+                    cost_row.add(x * dp),
+                    init_row.wrapping_add(x * dp),
+                    acc_row.add(x * dp),
+                    &pp,
                     p1,
-                    jump_h,
-                    row_min,
                 );
+                for v in 0..NV {
+                    mins_wr[v * (w + 2) + x + 1] = mins[v];
+                }
+                row_min = mins[NV];
             }
-            std::mem::swap(&mut ps.held, &mut ps.holding);
-        }
-        if let Some(v) = delayed_v {
-            ps.flush_held(ctx, NV, v, forward, held_min);
         }
         after_row(y, out_row);
+    }
+}
+
+/// Popcount of each u64 lane (in the low 16 bits of the lane) by a nibble table.
+#[target_feature(enable = "avx2")]
+#[inline]
+fn popcnt64(v: __m256i, table: __m256i, low: __m256i) -> __m256i {
+    let lo = _mm256_and_si256(v, low);
+    let hi = _mm256_and_si256(_mm256_srli_epi16::<4>(v), low);
+    let bytes = _mm256_add_epi8(
+        _mm256_shuffle_epi8(table, lo),
+        _mm256_shuffle_epi8(table, hi),
+    );
+    _mm256_sad_epu8(bytes, _mm256_setzero_si256())
+}
+
+/// [`crate::aggregate::cost_row`] 16 disparities at a time: the Hamming distances of four
+/// candidates per register, packed to 16 i16 lanes in disparity order. Lanes from D to D' are
+/// kept at FAR.
+///
+/// # Safety
+/// The CPU has AVX2; `rev` holds `w + 2 * pad + LANES` entries and `cost` W x D' lanes.
+#[target_feature(enable = "avx2")]
+unsafe fn cost_row(
+    ctx: &Ctx,
+    y: usize,
+    pad: usize,
+    unknown: i16,
+    rev: &mut [u64],
+    cost: &mut [i16],
+) {
+    let (w, nd, dp) = (ctx.w, ctx.nd, ctx.dp);
+    let chunks = dp / LANES;
+    let dmin = ctx.p.min_disparity as isize;
+    let cr = &ctx.cr[y * w..(y + 1) * w];
+    assert!(rev.len() >= w + 2 * pad + LANES && cost.len() >= w * dp);
+    // rev[pad + w - 1 - xr] = cr[xr]: the partners of x are contiguous in d (see cost_row).
+    for (xr, &c) in cr.iter().enumerate() {
+        rev[pad + w - 1 - xr] = c;
+    }
+    let table = _mm256_setr_epi8(
+        0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4, //
+        0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4,
+    );
+    let low = _mm256_set1_epi8(0x0f);
+    // Lanes of the last chunk at or beyond D keep FAR.
+    let last: [i16; LANES] =
+        std::array::from_fn(|l| if (chunks - 1) * LANES + l < nd { 0 } else { -1 });
+    // SAFETY: `last` holds LANES i16.
+    let last = unsafe { _mm256_loadu_si256(last.as_ptr().cast()) };
+    let far = _mm256_set1_epi16(FAR);
+    let order = _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7);
+    for (x, &c) in ctx.cl[y * w..(y + 1) * w].iter().enumerate() {
+        let t0 = (pad as isize + w as isize - 1 - x as isize + dmin) as usize;
+        let cv = _mm256_set1_epi64x(c as i64);
+        // SAFETY: t0 + dp <= w + 2 * pad + LANES (t0 <= pad + w - 1 + dmin, dp < nd + LANES,
+        // pad >= nd + |dmin| + 1) and the cell x * dp.. holds dp lanes (asserted above).
+        unsafe {
+            let src = rev.as_ptr().add(t0);
+            let dst = cost.as_mut_ptr().add(x * dp);
+            for q in 0..chunks {
+                let at = q * LANES;
+                let count = |i: usize| {
+                    let r = _mm256_loadu_si256(src.add(at + 4 * i).cast());
+                    popcnt64(_mm256_xor_si256(r, cv), table, low)
+                };
+                // Lanes (d0, d1 | d2, d3), (d4, d5 | d6, d7), ... as u64; two 32-bit packs
+                // give (d0 d1 d4 d5 d8 d9 d12 d13 | d2 d3 d6 d7 d10 d11 d14 d15), and a
+                // permutation of the 32-bit pairs restores the order.
+                let p01 = _mm256_packus_epi32(count(0), count(1));
+                let p23 = _mm256_packus_epi32(count(2), count(3));
+                let mut v = _mm256_permutevar8x32_epi32(_mm256_packus_epi32(p01, p23), order);
+                if q + 1 == chunks {
+                    v = _mm256_blendv_epi8(v, far, last);
+                }
+                _mm256_storeu_si256(dst.add(at).cast(), v);
+            }
+        }
+        let cell = &mut cost[x * dp..x * dp + nd];
+        // Valid d: 0 <= x - d - dmin < w.
+        let hi = x as isize - dmin; // largest valid d
+        let lo = x as isize - dmin - w as isize + 1; // smallest valid d
+        let first_bad_hi = (hi + 1).clamp(0, nd as isize) as usize;
+        cell[first_bad_hi..].fill(unknown);
+        let end_bad_lo = lo.clamp(0, nd as isize) as usize;
+        cell[..end_bad_lo].fill(unknown);
     }
 }

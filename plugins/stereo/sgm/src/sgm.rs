@@ -176,6 +176,30 @@ pub struct Scratch {
     /// Matching costs kept by the forward pass for the backward one (one thread).
     cost_vol: Vec<u8>,
     speckle: SpeckleScratch,
+    timing: SgmTiming,
+}
+
+/// Wall time of each stage of the last [`sgm`] call, ms (see [`Scratch::last_timing`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct SgmTiming {
+    /// Census transform of both images.
+    pub census_ms: f64,
+    /// The forward aggregation pass (with two threads: both passes, side by side).
+    pub forward_ms: f64,
+    /// The backward pass and the winner selection of each row as it completes (with two
+    /// threads: the selection alone).
+    pub backward_select_ms: f64,
+    /// Left-right check, median and speckle removal.
+    pub finish_ms: f64,
+    /// The whole call.
+    pub total_ms: f64,
+}
+
+impl Scratch {
+    /// The stage times of the last [`sgm`] call made with this scratch.
+    pub fn last_timing(&self) -> SgmTiming {
+        self.timing
+    }
 }
 
 /// The checks every SGM entry point makes: the parameters, the image sizes and the mask's.
@@ -222,7 +246,10 @@ pub fn sgm(
         right_scratch,
         cost_vol,
         speckle,
+        timing,
     } = s;
+    let ms = |t: std::time::Instant| t.elapsed().as_secs_f64() * 1e3;
+    let t0 = std::time::Instant::now();
     rayon::join(
         || census(left, w, h, cw, ch, census_l),
         || census(right, w, h, cw, ch, census_r),
@@ -245,6 +272,8 @@ pub fn sgm(
     right_disp.resize(w * h, f32::NAN);
     let plane = h * w * dp;
     sum_f.resize(plane, 0);
+    timing.census_ms = ms(t0);
+    let t1 = std::time::Instant::now();
     if rayon::current_num_threads() > 1 {
         // Both passes at once, then the selection row by row in parallel.
         sum_b.resize(plane, 0);
@@ -252,6 +281,7 @@ pub fn sgm(
             || pass(true, &ctx, pass_f, None, Costs::Compute, sum_f, |_, _| {}),
             || pass(false, &ctx, pass_b, None, Costs::Compute, sum_b, |_, _| {}),
         );
+        timing.forward_ms = ms(t1);
         let (sf, sb) = (&*sum_f, &*sum_b);
         disp.par_chunks_mut(w)
             .zip(right_disp.par_chunks_mut(w))
@@ -282,6 +312,7 @@ pub fn sgm(
             sum_f,
             |_, _| {},
         );
+        timing.forward_ms = ms(t1);
         row.resize(w * dp, 0);
         let costs = Costs::Load(cost_vol);
         pass(false, &ctx, pass_b, Some(sum_f), costs, row, |y, tot| {
@@ -290,6 +321,10 @@ pub fn sgm(
             select_row(&ctx, y, tot, valid, dl, dr, right_scratch);
         });
     }
+    let t2 = std::time::Instant::now();
+    timing.backward_select_ms = (t2 - t1).as_secs_f64() * 1e3 - timing.forward_ms;
     finish_with(&mut disp, right_disp, w, h, p, speckle);
+    timing.finish_ms = ms(t2);
+    timing.total_ms = ms(t0);
     Ok(disp)
 }
