@@ -40,6 +40,8 @@ impl PassScratch {
         push_paths(&mut self.paths, nv * (w + 2), dp);
         self.mins.clear();
         self.mins.resize(nv * (w + 2), 0);
+        self.row_path.clear();
+        push_paths(&mut self.row_path, 1, dp);
         self.held.clear();
         self.held.resize(dp, 0);
         self.holding.clear();
@@ -49,20 +51,6 @@ impl PassScratch {
         // LANES more at the end: the SIMD costs read whole chunks of candidates.
         self.rev.clear();
         self.rev.resize(w + 2 * ctx.rev_pad() + LANES, 0);
-    }
-
-    /// Sizes and resets the buffers for the AVX2 pass (see [`crate::aggregate_avx2`]): two row
-    /// buffers of `nv` paths (each as in [`Self::begin`]), two halves of minima, and two slots
-    /// for the path along the row.
-    #[cfg(target_arch = "x86_64")]
-    pub(crate) fn begin_double(&mut self, ctx: &Ctx, nv: usize) {
-        self.begin(ctx, nv);
-        self.paths.clear();
-        push_paths(&mut self.paths, 2 * nv * (ctx.w + 2), ctx.dp);
-        self.mins.clear();
-        self.mins.resize(2 * nv * (ctx.w + 2), 0);
-        self.row_path.clear();
-        push_paths(&mut self.row_path, 2, ctx.dp);
     }
 
     /// Starts row `y`: its matching costs, and the path along the row from zero at the border

@@ -1,11 +1,12 @@
 //! The aggregation pass of [`crate::aggregate`] in AVX2 registers: the same recurrence and the
 //! same sums, with all the paths of a pixel advanced together, 16 disparities at a time. Per
 //! chunk the matching costs and the running sum are loaded once and stored once, and each path
-//! reads its previous L at d - 1, d and d + 1 by three unaligned loads (no lane shuffles). For
-//! that the previous row of the paths is double-buffered (read one row buffer, write the other)
-//! and so is the path along the row (two slots, alternating by pixel), so no L is overwritten
-//! while it may still be read. The Hamming costs of a row are computed 16 disparities at a time
-//! too (nibble-table popcounts, [`cost_row`]).
+//! reads its previous L at d - 1, d and d + 1 by unaligned loads (no lane shuffles). The paths
+//! are updated in place in one row buffer, as in the portable pass (so the buffer stays in the
+//! L2 cache): the load of chunk q + 1 at d - 1 is made before chunk q is stored, and the path
+//! that would overwrite an L its right-hand neighbour still has to read holds its new L back a
+//! pixel. The Hamming costs of a row are computed 16 disparities at a time too (nibble-table
+//! popcounts, [`cost_row`]).
 
 use std::arch::x86_64::*;
 
@@ -22,11 +23,16 @@ pub(crate) fn pass(
     out: &mut [i16],
     after_row: impl FnMut(usize, &mut [i16]),
 ) {
-    match (ctx.vdx.len(), init.is_some()) {
-        (3, true) => pass_n::<3, 4, true>(forward, ctx, ps, init, costs, out, after_row),
-        (3, false) => pass_n::<3, 4, false>(forward, ctx, ps, init, costs, out, after_row),
-        (_, true) => pass_n::<1, 2, true>(forward, ctx, ps, init, costs, out, after_row),
-        (_, false) => pass_n::<1, 2, false>(forward, ctx, ps, init, costs, out, after_row),
+    // The path held back: the one from the previous row's pixel behind this one (dx = the
+    // step along the row), index 0 of [1, 0, -1] forward and 2 backward; none with 4 paths.
+    let (f, i) = (forward, init.is_some());
+    match (ctx.vdx.len(), f, i) {
+        (3, true, true) => pass_n::<3, 4, 0, true>(f, ctx, ps, init, costs, out, after_row),
+        (3, true, false) => pass_n::<3, 4, 0, false>(f, ctx, ps, init, costs, out, after_row),
+        (3, false, true) => pass_n::<3, 4, 2, true>(f, ctx, ps, init, costs, out, after_row),
+        (3, false, false) => pass_n::<3, 4, 2, false>(f, ctx, ps, init, costs, out, after_row),
+        (_, _, true) => pass_n::<1, 2, 2, true>(f, ctx, ps, init, costs, out, after_row),
+        (_, _, false) => pass_n::<1, 2, 2, false>(f, ctx, ps, init, costs, out, after_row),
     }
 }
 
@@ -39,26 +45,30 @@ fn hmin(v: __m256i) -> i16 {
 }
 
 /// Where the `NP` paths of one pixel read their previous L and write the new one (pointers at
-/// d = 0 of a segment with a guard lane at FAR before it and one after its last chunk), and
-/// their `min(prev) + P2` and `min(prev)`, broadcast.
+/// d = 0 of a segment with a guard lane at FAR before it and one after its last chunk; `dst`
+/// may be `src`), and their `min(prev) + P2` and `min(prev)`, broadcast. The held-back path
+/// also gets `held`, the previous pixel's L, stored over its `src` once read.
 struct Paths<const NP: usize> {
-    src: [*const i16; NP],
+    src: [*mut i16; NP],
     dst: [*mut i16; NP],
     jump: [__m256i; NP],
     min_prev: [__m256i; NP],
+    held: *const i16,
 }
 
 /// Advances the `NP` paths of one pixel over its `chunks` x 16 disparities: each path's
 /// `L = C + min(Lp[d], Lp[d-1] + P1, Lp[d+1] + P1, min(Lp) + P2) - min(Lp)` goes to its `dst`,
-/// and `acc = init (INIT) or 0, plus the sum of the new L` over the paths. Returns each path's
+/// and `acc = init (INIT) or 0, plus the sum of the new L` over the paths. Path `HELD` (none
+/// when >= NP) stores `held` over its `src`, chunk by chunk once read. Returns each path's
 /// minimum over d.
 ///
 /// # Safety
-/// `chunks * LANES` lanes from `cost`, `acc`, `init` (INIT) and each `dst` are valid, and each
-/// `src - 1 .. src + chunks * LANES + 1`; no `dst` overlaps a `src`.
+/// `chunks * LANES` lanes from `cost`, `acc`, `init` (INIT), `held` (HELD < NP) and each `dst`
+/// are valid, and each `src - 1 .. src + chunks * LANES + LANES`. A path's `src` and `dst`
+/// are the same or disjoint, and no other pointer overlaps them.
 #[target_feature(enable = "avx2")]
 #[inline]
-unsafe fn pixel<const NP: usize, const INIT: bool>(
+unsafe fn pixel<const NP: usize, const HELD: usize, const INIT: bool>(
     chunks: usize,
     cost: *const i16,
     init: *const i16,
@@ -69,6 +79,19 @@ unsafe fn pixel<const NP: usize, const INIT: bool>(
     // SAFETY: the caller guarantees the extents (see the doc above).
     unsafe {
         let mut mn = [_mm256_set1_epi16(FAR); NP];
+        // Each path's previous L at d - 1 of the next chunk, loaded before the chunk below it
+        // is overwritten.
+        let mut below: [__m256i; NP] = std::array::from_fn(|v| {
+            _mm256_loadu_si256(paths.src[v].wrapping_sub(1).cast_const().cast())
+        });
+        // The path along the row (the last) reads the L its previous pixel has just stored:
+        // unaligned loads that span two stores would wait for them to reach the cache, so it
+        // loads whole chunks (d - 16.., d.. and d + 16..) and shifts the neighbours out of them.
+        let row = paths.src[NP - 1];
+        let (mut lo, mut mid) = (
+            _mm256_loadu_si256(row.sub(LANES).cast_const().cast()),
+            _mm256_loadu_si256(row.cast_const().cast()),
+        );
         for q in 0..chunks {
             let at = q * LANES;
             let c = _mm256_loadu_si256(cost.add(at).cast());
@@ -79,9 +102,19 @@ unsafe fn pixel<const NP: usize, const INIT: bool>(
             };
             for (v, m) in mn.iter_mut().enumerate() {
                 let s = paths.src[v].add(at);
-                let a = _mm256_loadu_si256(s.cast());
-                let am = _mm256_loadu_si256(s.sub(1).cast());
-                let ap = _mm256_loadu_si256(s.add(1).cast());
+                let (a, am, ap);
+                if v + 1 == NP {
+                    let hi = _mm256_loadu_si256(s.add(LANES).cast_const().cast());
+                    a = mid;
+                    am = _mm256_alignr_epi8::<14>(a, _mm256_permute2x128_si256::<0x21>(lo, a));
+                    ap = _mm256_alignr_epi8::<2>(_mm256_permute2x128_si256::<0x21>(a, hi), a);
+                    (lo, mid) = (a, hi);
+                } else {
+                    a = _mm256_loadu_si256(s.cast_const().cast());
+                    am = below[v];
+                    ap = _mm256_loadu_si256(s.add(1).cast_const().cast());
+                    below[v] = _mm256_loadu_si256(s.add(LANES - 1).cast_const().cast());
+                }
                 let best = _mm256_min_epi16(
                     _mm256_min_epi16(a, paths.jump[v]),
                     _mm256_min_epi16(_mm256_adds_epi16(am, p1), _mm256_adds_epi16(ap, p1)),
@@ -89,6 +122,9 @@ unsafe fn pixel<const NP: usize, const INIT: bool>(
                 let l = _mm256_adds_epi16(c, _mm256_sub_epi16(best, paths.min_prev[v]));
                 *m = _mm256_min_epi16(*m, l);
                 sum = _mm256_adds_epi16(sum, l);
+                if v == HELD {
+                    _mm256_storeu_si256(s.cast(), _mm256_loadu_si256(paths.held.add(at).cast()));
+                }
                 _mm256_storeu_si256(paths.dst[v].add(at).cast(), l);
             }
             _mm256_storeu_si256(acc.add(at).cast(), sum);
@@ -101,10 +137,11 @@ unsafe fn pixel<const NP: usize, const INIT: bool>(
     }
 }
 
-/// NV paths from the previous row plus the path along the row (NP = NV + 1).
+/// NV paths from the previous row plus the path along the row (NP = NV + 1); path HELD of the
+/// NV (none when >= NV) is held back a pixel.
 #[target_feature(enable = "avx2,popcnt")]
 #[inline]
-fn pass_n<const NV: usize, const NP: usize, const INIT: bool>(
+fn pass_n<const NV: usize, const NP: usize, const HELD: usize, const INIT: bool>(
     forward: bool,
     ctx: &Ctx,
     ps: &mut PassScratch,
@@ -119,15 +156,16 @@ fn pass_n<const NV: usize, const NP: usize, const INIT: bool>(
     let chunks = dp / LANES;
     let mut vdx = [0isize; NV];
     vdx.copy_from_slice(ctx.vdx);
+    let step_x: isize = if forward { 1 } else { -1 };
+    assert!(HELD >= NV || vdx[HELD] == step_x);
     let row_len = w * dp;
     let whole = out.len() == h * row_len;
     let init = if INIT { init } else { None };
     assert!(out.len() >= row_len && init.is_none_or(|s| s.len() >= h * row_len));
-    ps.begin_double(ctx, NV);
-    let half = NV * (w + 2) * stride;
-    assert_eq!(ps.paths.len(), 2 * half + GUARD);
-    assert!(ps.mins.len() == 2 * NV * (w + 2) && ps.row_path.len() == 2 * stride + GUARD);
-    assert_eq!(ps.cost.len(), row_len);
+    ps.begin(ctx, NV);
+    assert_eq!(ps.paths.len(), NV * (w + 2) * stride + GUARD);
+    assert!(ps.mins.len() == NV * (w + 2) && ps.row_path.len() == stride + GUARD);
+    assert!(ps.held.len() == dp && ps.holding.len() == dp && ps.cost.len() == row_len);
     let p1 = _mm256_set1_epi16(ctx.p.p1 as i16);
     for k in 0..h {
         let y = if forward { k } else { h - 1 - k };
@@ -135,20 +173,16 @@ fn pass_n<const NV: usize, const NP: usize, const INIT: bool>(
             // SAFETY: this pass only runs where AVX2 and POPCNT were detected.
             unsafe { cost_row(c, y, pad, unknown, rev, cost) }
         });
-        // The path along the row starts from zero (L = C at the border).
+        // The path along the row starts from zero (L = C at the border), and so does the
+        // held-back L the first pixel stores over the border slot.
         ps.row_path[GUARD..GUARD + dp].fill(0);
-        let (rd, wr) = (k % 2, (k + 1) % 2);
+        ps.held.fill(0);
         let mut row_min = 0i16;
+        let mut held_min = 0i16;
         let prev_y = if forward { y.wrapping_sub(1) } else { y + 1 };
         let o = if whole { y * row_len } else { 0 };
         let out_row = &mut out[o..o + row_len];
         let img_row = &ctx.img[y * w..(y + 1) * w];
-        let (mins_rd, mins_wr) = ps.mins.split_at_mut(NV * (w + 2));
-        let (mins_rd, mins_wr) = if rd == 0 {
-            (&*mins_rd, mins_wr)
-        } else {
-            (&*mins_wr, mins_rd)
-        };
         let paths = ps.paths.as_mut_ptr();
         let row_path = ps.row_path.as_mut_ptr();
         let cost_row = ps.cost.as_ptr();
@@ -160,38 +194,45 @@ fn pass_n<const NV: usize, const NP: usize, const INIT: bool>(
             let p2_from = |xp: usize, yp: usize| ctx.p2_from(g, xp, yp);
             let zero = _mm256_setzero_si256();
             let mut pp = Paths::<NP> {
-                src: [std::ptr::null(); NP],
+                src: [std::ptr::null_mut(); NP],
                 dst: [std::ptr::null_mut(); NP],
                 jump: [zero; NP],
                 min_prev: [zero; NP],
+                held: ps.held.as_ptr(),
             };
-            // SAFETY: slots s <= w + 1 of NV segments of `stride` lanes lie in each half of
-            // `paths` (sized by `begin_double`, with a trailing guard), the row path holds two
-            // guarded slots, and the cell x * dp.. of the cost row, the sums and `init` holds
-            // dp lanes. The read half and the written half are disjoint, and so are the two
-            // row-path slots.
+            let mut slot = [0usize; NV];
+            // SAFETY: slots s <= w + 1 of NV segments of `stride` lanes lie in `paths` (sized
+            // by `begin`, with a trailing guard), the row path is one guarded slot, held and
+            // holding hold dp lanes, and the cell x * dp.. of the cost row, the sums and
+            // `init` holds dp lanes. Each path's segment is its own; the held-back path
+            // writes to `holding`.
             unsafe {
                 for v in 0..NV {
                     // Slot of the previous pixel on this path: x - dx, shifted by the zero slot.
                     let s = (x as isize - vdx[v] + 1) as usize;
-                    let mp = mins_rd[v * (w + 2) + s];
+                    slot[v] = s;
+                    let mp = ps.mins[v * (w + 2) + s];
                     let p2 = if k == 0 {
                         0
                     } else {
                         p2_from(s.wrapping_sub(1), prev_y)
                     };
-                    pp.src[v] = paths.add(rd * half + (s * NV + v) * stride + GUARD);
-                    pp.dst[v] = paths.add(wr * half + ((x + 1) * NV + v) * stride + GUARD);
+                    pp.src[v] = paths.add((s * NV + v) * stride + GUARD);
+                    pp.dst[v] = if v == HELD {
+                        ps.holding.as_mut_ptr()
+                    } else {
+                        paths.add(((x + 1) * NV + v) * stride + GUARD)
+                    };
                     pp.jump[v] = _mm256_set1_epi16(mp + p2);
                     pp.min_prev[v] = _mm256_set1_epi16(mp);
                 }
                 let xh = if forward { x.wrapping_sub(1) } else { x + 1 };
                 let jump_h = row_min + if j == 0 { 0 } else { p2_from(xh, y) };
-                pp.src[NV] = row_path.add((j % 2) * stride + GUARD);
-                pp.dst[NV] = row_path.add(((j + 1) % 2) * stride + GUARD);
+                pp.src[NV] = row_path.add(GUARD);
+                pp.dst[NV] = pp.src[NV];
                 pp.jump[NV] = _mm256_set1_epi16(jump_h);
                 pp.min_prev[NV] = _mm256_set1_epi16(row_min);
-                let mins = pixel::<NP, INIT>(
+                let mins = pixel::<NP, HELD, INIT>(
                     chunks,
                     cost_row.add(x * dp),
                     init_row.wrapping_add(x * dp),
@@ -200,10 +241,20 @@ fn pass_n<const NV: usize, const NP: usize, const INIT: bool>(
                     p1,
                 );
                 for v in 0..NV {
-                    mins_wr[v * (w + 2) + x + 1] = mins[v];
+                    if v == HELD {
+                        // The previous pixel's L went over the slot just read: so does its min.
+                        ps.mins[v * (w + 2) + slot[v]] = held_min;
+                        held_min = mins[v];
+                    } else {
+                        ps.mins[v * (w + 2) + x + 1] = mins[v];
+                    }
                 }
                 row_min = mins[NV];
             }
+            std::mem::swap(&mut ps.held, &mut ps.holding);
+        }
+        if HELD < NV {
+            ps.flush_held(ctx, NV, HELD, forward, held_min);
         }
         after_row(y, out_row);
     }
