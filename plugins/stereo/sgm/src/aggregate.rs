@@ -30,6 +30,8 @@ pub(crate) struct PassScratch {
     pub(crate) holding: Vec<i16>,
     /// The path along the row: the previous pixel's L, overwritten in place (one guarded slot).
     pub(crate) row_path: Vec<i16>,
+    /// P2 of each path into each pixel of the current row (AVX2 pass): NV + 1 rows of W.
+    pub(crate) p2_row: Vec<i16>,
 }
 
 impl PassScratch {
@@ -176,6 +178,11 @@ impl Ctx<'_> {
     /// Entries on each side of the reversed right census row (see [`cost_row`]).
     pub(crate) fn rev_pad(&self) -> usize {
         self.nd + self.p.min_disparity.unsigned_abs() as usize + 1
+    }
+
+    /// P2 for each intensity step 0..=255 (see [`SgmParams::p2_at`]).
+    pub(crate) fn p2_table(&self) -> [i16; 256] {
+        std::array::from_fn(|step| self.p.p2_at(step as u16) as i16)
     }
 
     /// P2 between a pixel of gray level `g` and its predecessor (xp, yp) on a path; 0 when the

@@ -167,6 +167,11 @@ fn pass_n<const NV: usize, const NP: usize, const HELD: usize, const INIT: bool>
     assert!(ps.mins.len() == NV * (w + 2) && ps.row_path.len() == stride + GUARD);
     assert!(ps.held.len() == dp && ps.holding.len() == dp && ps.cost.len() == row_len);
     let p1 = _mm256_set1_epi16(ctx.p.p1 as i16);
+    let table = ctx.p2_table();
+    ps.p2_row.clear();
+    ps.p2_row.resize(NP * w, 0);
+    let mut held = ps.held.as_mut_ptr();
+    let mut holding = ps.holding.as_mut_ptr();
     for k in 0..h {
         let y = if forward { k } else { h - 1 - k };
         ps.row_costs_with(ctx, y, &mut costs, |c, y, pad, unknown, rev, cost| {
@@ -176,63 +181,83 @@ fn pass_n<const NV: usize, const NP: usize, const HELD: usize, const INIT: bool>
         // The path along the row starts from zero (L = C at the border), and so does the
         // held-back L the first pixel stores over the border slot.
         ps.row_path[GUARD..GUARD + dp].fill(0);
-        ps.held.fill(0);
+        // SAFETY: `held` points at dp lanes (asserted above; the two buffers only swap).
+        unsafe { std::slice::from_raw_parts_mut(held, dp) }.fill(0);
+        let prev_y = if forward { y.wrapping_sub(1) } else { y + 1 };
+        // P2 of each path into each pixel of the row: by the intensity step from the pixel it
+        // comes from, 0 where that lies outside the image (a path start).
+        let img_row = &ctx.img[y * w..(y + 1) * w];
+        for (v, p2s) in ps.p2_row.chunks_exact_mut(w).enumerate() {
+            let (dx, dy) = if v < NV {
+                (vdx[v], prev_y)
+            } else {
+                (step_x, y)
+            };
+            if dy >= h {
+                p2s.fill(0);
+                continue;
+            }
+            let from = &ctx.img[dy * w..(dy + 1) * w];
+            for (x, (o, &g)) in p2s.iter_mut().zip(img_row).enumerate() {
+                let xp = x as isize - dx;
+                *o = if (0..w as isize).contains(&xp) {
+                    table[usize::from(g.abs_diff(from[xp as usize]))]
+                } else {
+                    0
+                };
+            }
+        }
         let mut row_min = 0i16;
         let mut held_min = 0i16;
-        let prev_y = if forward { y.wrapping_sub(1) } else { y + 1 };
         let o = if whole { y * row_len } else { 0 };
         let out_row = &mut out[o..o + row_len];
-        let img_row = &ctx.img[y * w..(y + 1) * w];
         let paths = ps.paths.as_mut_ptr();
+        let mins = ps.mins.as_mut_ptr();
+        let p2_row = ps.p2_row.as_ptr();
         let row_path = ps.row_path.as_mut_ptr();
         let cost_row = ps.cost.as_ptr();
         let acc_row = out_row.as_mut_ptr();
         let init_row = init.map_or(std::ptr::null(), |s| s[y * row_len..].as_ptr());
         for j in 0..w {
             let x = if forward { j } else { w - 1 - j };
-            let g = img_row[x];
-            let p2_from = |xp: usize, yp: usize| ctx.p2_from(g, xp, yp);
             let zero = _mm256_setzero_si256();
             let mut pp = Paths::<NP> {
                 src: [std::ptr::null_mut(); NP],
                 dst: [std::ptr::null_mut(); NP],
                 jump: [zero; NP],
                 min_prev: [zero; NP],
-                held: ps.held.as_ptr(),
+                held,
             };
             let mut slot = [0usize; NV];
-            // SAFETY: slots s <= w + 1 of NV segments of `stride` lanes lie in `paths` (sized
-            // by `begin`, with a trailing guard), the row path is one guarded slot, held and
-            // holding hold dp lanes, and the cell x * dp.. of the cost row, the sums and
-            // `init` holds dp lanes. Each path's segment is its own; the held-back path
-            // writes to `holding`.
+            // SAFETY: x < w, and slots s <= w + 1 of NV segments of `stride` lanes lie in
+            // `paths` (sized by `begin`, with a trailing guard) and NV (w + 2) minima in
+            // `mins`; the row path is one guarded slot, held and holding hold dp lanes, the
+            // P2 rows NP x w entries, and the cell x * dp.. of the cost row, the sums and
+            // `init` dp lanes. Each path's segment is its own; the held-back path writes to
+            // `holding`.
             unsafe {
                 for v in 0..NV {
                     // Slot of the previous pixel on this path: x - dx, shifted by the zero slot.
                     let s = (x as isize - vdx[v] + 1) as usize;
                     slot[v] = s;
-                    let mp = ps.mins[v * (w + 2) + s];
-                    let p2 = if k == 0 {
-                        0
-                    } else {
-                        p2_from(s.wrapping_sub(1), prev_y)
-                    };
+                    let mp = *mins.add(v * (w + 2) + s);
+                    let p2 = *p2_row.add(v * w + x);
                     pp.src[v] = paths.add((s * NV + v) * stride + GUARD);
                     pp.dst[v] = if v == HELD {
-                        ps.holding.as_mut_ptr()
+                        holding
                     } else {
                         paths.add(((x + 1) * NV + v) * stride + GUARD)
                     };
                     pp.jump[v] = _mm256_set1_epi16(mp + p2);
                     pp.min_prev[v] = _mm256_set1_epi16(mp);
                 }
-                let xh = if forward { x.wrapping_sub(1) } else { x + 1 };
-                let jump_h = row_min + if j == 0 { 0 } else { p2_from(xh, y) };
+                // The row path's P2 is 0 at the row's first pixel (its predecessor is outside).
+                let jump_h = row_min + *p2_row.add(NV * w + x);
                 pp.src[NV] = row_path.add(GUARD);
                 pp.dst[NV] = pp.src[NV];
                 pp.jump[NV] = _mm256_set1_epi16(jump_h);
                 pp.min_prev[NV] = _mm256_set1_epi16(row_min);
-                let mins = pixel::<NP, HELD, INIT>(
+                let new_mins = pixel::<NP, HELD, INIT>(
                     chunks,
                     cost_row.add(x * dp),
                     init_row.wrapping_add(x * dp),
@@ -243,15 +268,20 @@ fn pass_n<const NV: usize, const NP: usize, const HELD: usize, const INIT: bool>
                 for v in 0..NV {
                     if v == HELD {
                         // The previous pixel's L went over the slot just read: so does its min.
-                        ps.mins[v * (w + 2) + slot[v]] = held_min;
-                        held_min = mins[v];
+                        *mins.add(v * (w + 2) + slot[v]) = held_min;
+                        held_min = new_mins[v];
                     } else {
-                        ps.mins[v * (w + 2) + x + 1] = mins[v];
+                        *mins.add(v * (w + 2) + x + 1) = new_mins[v];
                     }
                 }
-                row_min = mins[NV];
+                row_min = new_mins[NV];
             }
+            std::mem::swap(&mut held, &mut holding);
+        }
+        // The buffer the last pixel's L went to becomes `ps.held` again.
+        if held == ps.holding.as_mut_ptr() {
             std::mem::swap(&mut ps.held, &mut ps.holding);
+            (held, holding) = (ps.held.as_mut_ptr(), ps.holding.as_mut_ptr());
         }
         if HELD < NV {
             ps.flush_held(ctx, NV, HELD, forward, held_min);
