@@ -19,20 +19,7 @@ pub(crate) fn finish_with(
 ) {
     if p.lr_check && w > 0 {
         for (row, rrow) in disp.chunks_exact_mut(w).zip(right.chunks_exact(w)) {
-            for (x, d) in row.iter_mut().enumerate() {
-                if !d.is_finite() {
-                    continue;
-                }
-                let xr = (x as f32 - *d).round();
-                if xr < 0.0 || xr as usize >= w {
-                    *d = f32::NAN;
-                    continue;
-                }
-                let dr = rrow[xr as usize];
-                if !(dr.is_finite() && (dr - *d).abs() <= p.lr_max_diff) {
-                    *d = f32::NAN;
-                }
-            }
+            lr_check_row(row, rrow, p.lr_max_diff);
         }
     }
     if p.median {
@@ -48,6 +35,91 @@ pub(crate) fn finish_with(
             speckle,
         );
     }
+}
+
+/// The left-right check of one row: a left disparity d at x survives when the right disparity
+/// at round(x - d) (half away from zero) lies inside the row, is valid and is within `max_diff`
+/// of d. With AVX2, 8 pixels per step (the right disparities by a masked gather).
+pub(crate) fn lr_check_row(row: &mut [f32], right: &[f32], max_diff: f32) {
+    assert_eq!(row.len(), right.len());
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if crate::simd::avx2() {
+        // SAFETY: the CPU supports AVX2 (checked just above).
+        done = unsafe { lr_check_avx2(row, right, max_diff) };
+    }
+    let w = row.len();
+    for (x, d) in row.iter_mut().enumerate().skip(done) {
+        if !d.is_finite() {
+            continue;
+        }
+        let xr = (x as f32 - *d).round();
+        if xr < 0.0 || xr as usize >= w {
+            *d = f32::NAN;
+            continue;
+        }
+        let dr = right[xr as usize];
+        if !(dr.is_finite() && (dr - *d).abs() <= max_diff) {
+            *d = f32::NAN;
+        }
+    }
+}
+
+/// [`lr_check_row`] on the first multiple of 8 pixels; returns how many it did. The rounding
+/// is `trunc(v + copysign(0.49999997, v))`, which is `round` (half away from zero) for every
+/// float.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn lr_check_avx2(row: &mut [f32], right: &[f32], max_diff: f32) -> usize {
+    use std::arch::x86_64::*;
+    let w = row.len();
+    let n = w / 8 * 8;
+    // The row index must fit i32 for the gather; wider rows take the scalar loop.
+    if w >= i32::MAX as usize {
+        return 0;
+    }
+    let sign = _mm256_set1_ps(-0.0);
+    let half = _mm256_set1_ps(0.5f32.next_down());
+    let inf = _mm256_set1_ps(f32::INFINITY);
+    let nan = _mm256_set1_ps(f32::NAN);
+    let limit = _mm256_set1_ps(max_diff);
+    let wv = _mm256_set1_epi32(w as i32);
+    let lanes = _mm256_setr_ps(0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0);
+    for x0 in (0..n).step_by(8) {
+        // SAFETY: x0 + 8 <= n <= row.len(); the gather reads right[xr] only in lanes whose
+        // xr lies in 0..w (the mask), and right.len() == w.
+        unsafe {
+            let d = _mm256_loadu_ps(row.as_ptr().add(x0));
+            let finite = _mm256_cmp_ps::<_CMP_LT_OQ>(_mm256_andnot_ps(sign, d), inf);
+            let v = _mm256_sub_ps(_mm256_add_ps(_mm256_set1_ps(x0 as f32), lanes), d);
+            let r = _mm256_round_ps::<{ _MM_FROUND_TO_ZERO | _MM_FROUND_NO_EXC }>(_mm256_add_ps(
+                v,
+                _mm256_or_ps(half, _mm256_and_ps(v, sign)),
+            ));
+            // r is integral; NaN or far out of range in the lanes that are not finite.
+            let xr = _mm256_cvttps_epi32(r);
+            let inside = _mm256_and_ps(
+                finite,
+                _mm256_castsi256_ps(_mm256_and_si256(
+                    _mm256_cmpgt_epi32(xr, _mm256_set1_epi32(-1)),
+                    _mm256_cmpgt_epi32(wv, xr),
+                )),
+            );
+            let dr = _mm256_mask_i32gather_ps::<4>(nan, right.as_ptr(), xr, inside);
+            // Ordered compare: false where dr is NaN; |dr - d| is +inf where dr is infinite.
+            let close =
+                _mm256_cmp_ps::<_CMP_LE_OQ>(_mm256_andnot_ps(sign, _mm256_sub_ps(dr, d)), limit);
+            let keep = _mm256_and_ps(
+                _mm256_and_ps(inside, close),
+                _mm256_cmp_ps::<_CMP_LT_OQ>(_mm256_andnot_ps(sign, dr), inf),
+            );
+            // Non-finite input stays as it was (the scalar loop leaves it untouched).
+            let out = _mm256_blendv_ps(nan, d, keep);
+            let out = _mm256_blendv_ps(d, out, finite);
+            _mm256_storeu_ps(row.as_mut_ptr().add(x0), out);
+        }
+    }
+    n
 }
 
 /// The optimal 9-input sorting network (25 compare-exchanges, depth 7): calls `$exch!(i, j)`
@@ -252,9 +324,12 @@ fn median_at(d: &[f32], w: usize, h: usize, x: usize, y: usize) -> f32 {
 /// Buffers of [`remove_speckles_with`], reused across frames.
 #[derive(Default)]
 pub struct SpeckleScratch {
+    /// Provisional region label of each pixel (NONE where invalid).
     label: Vec<u32>,
-    stack: Vec<usize>,
-    region: Vec<usize>,
+    /// Union-find parent of each label (always a smaller or equal label).
+    parent: Vec<u32>,
+    /// Pixels per region root.
+    count: Vec<u32>,
 }
 
 /// Invalidates 4-connected regions (neighbours within `range`) smaller than `window` pixels.
@@ -262,7 +337,24 @@ pub fn remove_speckles(d: &mut [f32], w: usize, h: usize, window: usize, range: 
     remove_speckles_with(d, w, h, window, range, &mut SpeckleScratch::default());
 }
 
-/// [`remove_speckles`] with buffers kept by the caller.
+/// Label of an invalid pixel.
+const NONE: u32 = u32::MAX;
+
+/// Root of label `l`, halving the path on the way.
+#[inline]
+fn find(parent: &mut [u32], mut l: u32) -> u32 {
+    while parent[l as usize] != l {
+        let up = parent[parent[l as usize] as usize];
+        parent[l as usize] = up;
+        l = up;
+    }
+    l
+}
+
+/// [`remove_speckles`] with buffers kept by the caller: one raster scan labels the regions
+/// (each valid pixel joins its left and upper neighbours when within `range`, the two labels
+/// merged by union-find), a second counts each region and clears the small ones. The regions are
+/// those of a flood fill over the same neighbour relation ([`crate::reference`] keeps one).
 pub fn remove_speckles_with(
     d: &mut [f32],
     w: usize,
@@ -273,48 +365,58 @@ pub fn remove_speckles_with(
 ) {
     let SpeckleScratch {
         label,
-        stack,
-        region,
+        parent,
+        count,
     } = s;
+    assert!(d.len() >= w * h);
     label.clear();
-    label.resize(w * h, 0);
-    stack.clear();
-    let mut next = 1u32;
-    for start in 0..w * h {
-        if label[start] != 0 || !d[start].is_finite() {
-            continue;
-        }
-        region.clear();
-        stack.push(start);
-        label[start] = next;
-        while let Some(i) = stack.pop() {
-            region.push(i);
-            let (y, x) = (i / w, i % w);
-            let mut visit = |j: usize| {
-                if label[j] == 0 && d[j].is_finite() && (d[j] - d[i]).abs() <= range {
-                    label[j] = next;
-                    stack.push(j);
+    label.resize(w * h, NONE);
+    parent.clear();
+    let near = |a: f32, b: f32| (a - b).abs() <= range;
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            let v = d[i];
+            if !v.is_finite() {
+                continue;
+            }
+            let left = x > 0 && label[i - 1] != NONE && near(v, d[i - 1]);
+            let up = y > 0 && label[i - w] != NONE && near(v, d[i - w]);
+            label[i] = match (left, up) {
+                (false, false) => {
+                    let l = parent.len() as u32;
+                    parent.push(l);
+                    l
+                }
+                (true, false) => label[i - 1],
+                (false, true) => label[i - w],
+                (true, true) => {
+                    let (a, b) = (label[i - 1], label[i - w]);
+                    if a == b {
+                        a
+                    } else {
+                        let (a, b) = (find(parent, a), find(parent, b));
+                        let (lo, hi) = (a.min(b), a.max(b));
+                        parent[hi as usize] = lo;
+                        lo
+                    }
                 }
             };
-            if x > 0 {
-                visit(i - 1);
-            }
-            if x + 1 < w {
-                visit(i + 1);
-            }
-            if y > 0 {
-                visit(i - w);
-            }
-            if y + 1 < h {
-                visit(i + w);
-            }
         }
-        if region.len() < window {
-            for &i in region.iter() {
-                d[i] = f32::NAN;
-            }
+    }
+    // Every parent is a smaller label: in increasing order each becomes its root.
+    for l in 0..parent.len() {
+        parent[l] = parent[parent[l] as usize];
+    }
+    count.clear();
+    count.resize(parent.len(), 0);
+    for &l in label.iter().filter(|&&l| l != NONE) {
+        count[parent[l as usize] as usize] += 1;
+    }
+    for (v, &l) in d.iter_mut().zip(label.iter()) {
+        if l != NONE && (count[parent[l as usize] as usize] as usize) < window {
+            *v = f32::NAN;
         }
-        next += 1;
     }
 }
 
@@ -346,6 +448,109 @@ mod tests {
                 v[v.len() / 2]
             })
             .collect()
+    }
+
+    /// Deterministic values for the tests below.
+    fn lcg(seed: &mut u64) -> u32 {
+        *seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (*seed >> 33) as u32
+    }
+
+    #[test]
+    fn union_find_speckles_remove_exactly_the_flood_fill_regions() {
+        let mut seed = 7u64;
+        let mut removed = 0;
+        for case in 0..300 {
+            let (w, h) = (1 + case % 23, 1 + (case * 7) % 19);
+            // Few levels, so regions meander and merge (U shapes, spirals); some invalid.
+            let levels = 2 + case % 4;
+            let d: Vec<f32> = (0..w * h)
+                .map(|_| match lcg(&mut seed) % 12 {
+                    0 => f32::NAN,
+                    1 => f32::NEG_INFINITY,
+                    k => (k as usize % levels) as f32 * 0.75,
+                })
+                .collect();
+            let (window, range) = (1 + case % 9, [0.0, 0.5, 0.75, 1.6][case % 4]);
+            let mut want = d.clone();
+            crate::reference::remove_speckles_reference(&mut want, w, h, window, range);
+            let mut got = d.clone();
+            let mut scratch = SpeckleScratch::default();
+            remove_speckles_with(&mut got, w, h, window, range, &mut scratch);
+            // Again with the same scratch: nothing may leak between calls.
+            let mut again = d.clone();
+            remove_speckles_with(&mut again, w, h, window, range, &mut scratch);
+            for (i, ((g, a), r)) in got.iter().zip(&again).zip(&want).enumerate() {
+                assert!(
+                    g.to_bits() == r.to_bits() && a.to_bits() == r.to_bits(),
+                    "case {case} ({w}x{h}, window {window}, range {range}) pixel {i}: {g} {a} instead of {r}"
+                );
+            }
+            removed += got
+                .iter()
+                .zip(&d)
+                .filter(|(g, o)| g.is_nan() && o.is_finite())
+                .count();
+        }
+        assert!(
+            removed > 1000,
+            "the cases remove regions ({removed} pixels)"
+        );
+    }
+
+    #[test]
+    fn the_lane_left_right_check_is_the_scalar_one() {
+        let mut seed = 11u64;
+        for case in 0..200 {
+            let w = 1 + case % 37;
+            // Disparities on and around the .5 boundaries, negative ones, huge ones, invalid.
+            let draw = |seed: &mut u64| match lcg(seed) % 16 {
+                0 => f32::NAN,
+                1 => f32::INFINITY,
+                2 => -f32::INFINITY,
+                3 => (lcg(seed) % 8) as f32 + 0.5,
+                4 => ((lcg(seed) % 8) as f32 + 0.5).next_down(),
+                5 => -((lcg(seed) % 3) as f32) - 0.5,
+                6 => 1e9,
+                // At x = 0 these give x - d = -+(0.5 - 2^-25), where rounding by
+                // trunc(v + 0.5 sign(v)) would be wrong.
+                7 => 0.5f32.next_down(),
+                8 => -(0.5f32.next_down()),
+                _ => (lcg(seed) % 4000) as f32 / 250.0,
+            };
+            let left: Vec<f32> = (0..w).map(|_| draw(&mut seed)).collect();
+            let right: Vec<f32> = (0..w).map(|_| draw(&mut seed)).collect();
+            let max_diff = [0.0, 0.5, 1.0, 3.0][case % 4];
+            let mut want = left.clone();
+            for (x, d) in want.iter_mut().enumerate() {
+                if !d.is_finite() {
+                    continue;
+                }
+                let xr = (x as f32 - *d).round();
+                let ok = xr >= 0.0 && (xr as usize) < w && {
+                    let dr = right[xr as usize];
+                    dr.is_finite() && (dr - *d).abs() <= max_diff
+                };
+                if !ok {
+                    *d = f32::NAN;
+                }
+            }
+            for portable in [false, true] {
+                crate::simd::force_portable(portable);
+                let mut got = left.clone();
+                lr_check_row(&mut got, &right, max_diff);
+                crate::simd::force_portable(false);
+                for (x, (g, r)) in got.iter().zip(&want).enumerate() {
+                    assert!(
+                        g.to_bits() == r.to_bits(),
+                        "case {case} x {x}: {g} instead of {r} (left {}, portable {portable})",
+                        left[x]
+                    );
+                }
+            }
+        }
     }
 
     #[test]

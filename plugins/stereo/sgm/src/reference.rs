@@ -3,7 +3,7 @@
 //! times the fast path) and kept only as the oracle: [`crate::sgm::sgm`] and the WGSL kernel are
 //! tested to give exactly its output.
 
-use crate::sgm::{check_pair, finish, path_step, SgmParams};
+use crate::sgm::{check_pair, median3, path_step, SgmParams};
 
 /// Census transform, one pixel at a time (same bits as [`crate::sgm::census`]).
 pub fn census_reference(img: &[u8], w: usize, h: usize, cw: usize, ch: usize) -> Vec<u64> {
@@ -86,7 +86,7 @@ pub fn sgm_reference(
         }
         *out = bd.map_or(f32::NAN, |d| d as f32 + dminf);
     }
-    finish(&mut disp, &right_disp, w, h, p);
+    finish_reference(&mut disp, &right_disp, w, h, p);
     Ok(disp)
 }
 
@@ -182,4 +182,77 @@ fn aggregate(img: &[u8], w: usize, h: usize, nd: usize, p: &SgmParams, cost: &[u
         }
     }
     sum
+}
+
+/// The filters after the selection, one pixel at a time: left-right check, the 3x3 median
+/// (tested on its own against the sorted definition) and speckle removal by flood fill.
+pub fn finish_reference(disp: &mut Vec<f32>, right: &[f32], w: usize, h: usize, p: &SgmParams) {
+    if p.lr_check {
+        for y in 0..h {
+            for x in 0..w {
+                let d = &mut disp[y * w + x];
+                if !d.is_finite() {
+                    continue;
+                }
+                let xr = (x as f32 - *d).round();
+                if xr < 0.0 || xr as usize >= w {
+                    *d = f32::NAN;
+                    continue;
+                }
+                let dr = right[y * w + xr as usize];
+                if !(dr.is_finite() && (dr - *d).abs() <= p.lr_max_diff) {
+                    *d = f32::NAN;
+                }
+            }
+        }
+    }
+    if p.median {
+        *disp = median3(disp, w, h);
+    }
+    if p.speckle_window > 0 {
+        remove_speckles_reference(disp, w, h, p.speckle_window as usize, p.speckle_range);
+    }
+}
+
+/// Speckle removal by flood fill: each 4-connected region of valid pixels whose neighbours
+/// differ by at most `range` is invalidated when it has fewer than `window` pixels.
+pub fn remove_speckles_reference(d: &mut [f32], w: usize, h: usize, window: usize, range: f32) {
+    let mut label = vec![0u32; w * h];
+    let mut next = 1u32;
+    for start in 0..w * h {
+        if label[start] != 0 || !d[start].is_finite() {
+            continue;
+        }
+        let mut region = Vec::new();
+        let mut stack = vec![start];
+        label[start] = next;
+        while let Some(i) = stack.pop() {
+            region.push(i);
+            let (y, x) = (i / w, i % w);
+            let mut visit = |j: usize| {
+                if label[j] == 0 && d[j].is_finite() && (d[j] - d[i]).abs() <= range {
+                    label[j] = next;
+                    stack.push(j);
+                }
+            };
+            if x > 0 {
+                visit(i - 1);
+            }
+            if x + 1 < w {
+                visit(i + 1);
+            }
+            if y > 0 {
+                visit(i - w);
+            }
+            if y + 1 < h {
+                visit(i + w);
+            }
+        }
+        if region.len() < window {
+            for &i in &region {
+                d[i] = f32::NAN;
+            }
+        }
+        next += 1;
+    }
 }
