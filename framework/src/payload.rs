@@ -143,9 +143,10 @@ impl Image {
             out.extend_from_slice(&self.data);
             return;
         }
-        out.reserve(self.len());
-        for px in self.data.chunks_exact(3) {
-            out.push(luma_bt601(px[0], px[1], px[2]));
+        // Sized first, so the loop is plain stores (it vectorises; `push` would not).
+        out.resize(self.len(), 0);
+        for (o, px) in out.iter_mut().zip(self.data.chunks_exact(3)) {
+            *o = luma_bt601(px[0], px[1], px[2]);
         }
     }
 }
