@@ -197,14 +197,24 @@ fn pass_n<const NV: usize, const NP: usize, const HELD: usize, const INIT: bool>
                 p2s.fill(0);
                 continue;
             }
-            let from = &ctx.img[dy * w..(dy + 1) * w];
-            for (x, (o, &g)) in p2s.iter_mut().zip(img_row).enumerate() {
-                let xp = x as isize - dx;
-                *o = if (0..w as isize).contains(&xp) {
-                    table[usize::from(g.abs_diff(from[xp as usize]))]
-                } else {
-                    0
-                };
+            if ctx.p.p2_adaptive {
+                let from = &ctx.img[dy * w..(dy + 1) * w];
+                for (x, (o, &g)) in p2s.iter_mut().zip(img_row).enumerate() {
+                    let xp = x as isize - dx;
+                    *o = if (0..w as isize).contains(&xp) {
+                        table[usize::from(g.abs_diff(from[xp as usize]))]
+                    } else {
+                        0
+                    };
+                }
+            } else {
+                p2s.fill(table[0]);
+                // The pixel whose predecessor lies beyond the row's end, if any.
+                match dx {
+                    1 => p2s[0] = 0,
+                    -1 => p2s[w - 1] = 0,
+                    _ => {}
+                }
             }
         }
         let mut row_min = 0i16;
