@@ -115,9 +115,11 @@ unsafe fn pixel<const NP: usize, const HELD: usize, const INIT: bool>(
                     ap = _mm256_loadu_si256(s.add(1).cast_const().cast());
                     below[v] = _mm256_loadu_si256(s.add(LANES - 1).cast_const().cast());
                 }
+                // min(am + P1, ap + P1) as min(am, ap) + P1: the same with saturation, as
+                // the saturating add is monotonic.
                 let best = _mm256_min_epi16(
                     _mm256_min_epi16(a, paths.jump[v]),
-                    _mm256_min_epi16(_mm256_adds_epi16(am, p1), _mm256_adds_epi16(ap, p1)),
+                    _mm256_adds_epi16(_mm256_min_epi16(am, ap), p1),
                 );
                 let l = _mm256_adds_epi16(c, _mm256_sub_epi16(best, paths.min_prev[v]));
                 *m = _mm256_min_epi16(*m, l);
