@@ -226,3 +226,14 @@ fn depth_elas_graph_runs_on_hamlyn_frames() {
     assert!(density > 0.3, "density {density}");
     assert!(valid.iter().all(|&d| (0.0..=64.5).contains(&d)));
 }
+
+#[test]
+fn empty_and_tiny_images_are_errors_or_results_never_a_panic() {
+    for (w, h) in [(0, 0), (0, 5), (5, 0), (1, 1), (3, 2), (16, 1), (1, 16)] {
+        let img = vec![128u8; w * h];
+        match elas(&img, &img, w, h, &params()) {
+            Ok(out) => assert_eq!(out.left.len(), w * h, "{w}x{h}"),
+            Err(e) => assert!(e.contains(&format!("{w}x{h}")), "{w}x{h}: {e}"),
+        }
+    }
+}

@@ -296,6 +296,9 @@ pub fn elas_with(
     s: &mut Scratch,
 ) -> Result<ElasOutput, String> {
     p.validate()?;
+    if w == 0 || h == 0 {
+        return Err(format!("the images are {w}x{h}: nothing to match"));
+    }
     if left.len() != w * h || right.len() != w * h {
         return Err(format!("images must be {w}x{h} gray"));
     }

@@ -22,8 +22,11 @@ pub fn census(img: &[u8], w: usize, h: usize, cw: usize, ch: usize, out: &mut Ve
             *d = s ^ flip;
         }
     }
-    out.clear();
-    out.resize(w * h, 0);
+    // Every row is written below: only a size change needs the buffer reset.
+    if out.len() != w * h {
+        out.clear();
+        out.resize(w * h, 0);
+    }
     out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         #[cfg(target_arch = "x86_64")]
         if simd {
@@ -36,10 +39,10 @@ pub fn census(img: &[u8], w: usize, h: usize, cw: usize, ch: usize, out: &mut Ve
     });
 }
 
-/// One census row, 32 pixels at a time: per neighbour, a signed byte compare with the centres
-/// (the padded image is offset by 128) shifted into a byte accumulator (`acc + acc - mask`),
-/// eight neighbours per byte plane; the planes are then transposed into one u64 per pixel by
-/// byte, word and dword unpacks.
+/// One census row, 32 pixels at a time: per neighbour (offsets from a table), a signed byte
+/// compare with the centres (the padded image is offset by 128) shifted into a byte accumulator
+/// (`acc + acc - mask`), eight neighbours per byte plane; the planes are then transposed into
+/// one u64 per pixel by byte, word and dword unpacks.
 ///
 /// # Safety
 /// The CPU has AVX2; `pad` is the padded image offset by 128 with 32 bytes after its last row.
@@ -57,29 +60,37 @@ unsafe fn census_row_avx2(pad: &[u8], pw: usize, rx: usize, ry: usize, y: usize,
         // (asserted above).
         unsafe { _mm256_loadu_si256(pad.as_ptr().add(at).cast()) }
     };
+    // Offsets of the neighbours from the window's top-left pixel, in bit order (neighbour k
+    // lands in bit n - 1 - k), and how many fill the top byte plane.
+    let mut offs = [0usize; 64];
+    let mut k = 0;
+    for wy in 0..wh {
+        for wx in 0..=2 * rx {
+            if !(wy == ry && wx == rx) {
+                offs[k] = wy * pw + wx;
+                k += 1;
+            }
+        }
+    }
+    let offs = &offs[..n];
+    let planes_used = n.div_ceil(8);
+    let top = n - 8 * (planes_used - 1);
     let mut x0 = 0;
     while x0 < w {
         let c = load((y + ry) * pw + rx + x0);
+        let base = y * pw + x0;
         let mut planes = [_mm256_setzero_si256(); 8];
-        let mut acc = _mm256_setzero_si256();
         let mut k = 0;
-        for wy in 0..wh {
-            let base = (y + wy) * pw + x0;
-            for wx in 0..=2 * rx {
-                if wy == ry && wx == rx {
-                    continue;
-                }
-                // All ones where the neighbour is darker: acc = acc << 1 | bit.
-                let darker = _mm256_cmpgt_epi8(c, load(base + wx));
+        for b in (0..planes_used).rev() {
+            // All ones where the neighbour is darker: acc = acc << 1 | bit, per byte.
+            let count = if b + 1 == planes_used { top } else { 8 };
+            let mut acc = _mm256_setzero_si256();
+            for &off in &offs[k..k + count] {
+                let darker = _mm256_cmpgt_epi8(c, load(base + off));
                 acc = _mm256_sub_epi8(_mm256_add_epi8(acc, acc), darker);
-                // Neighbour k lands in bit n - 1 - k; a byte is complete at a multiple of 8.
-                let bit = n - 1 - k;
-                if bit.is_multiple_of(8) {
-                    planes[bit / 8] = acc;
-                    acc = _mm256_setzero_si256();
-                }
-                k += 1;
             }
+            k += count;
+            planes[b] = acc;
         }
         let [p0, p1, p2, p3, p4, p5, p6, p7] = planes;
         // Bytes 2i and 2i + 1 of 16 pixels per 128-bit lane (pixels 0-7 | 16-23, then 8-15 |

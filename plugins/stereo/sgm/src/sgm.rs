@@ -212,6 +212,9 @@ pub fn check_pair(
     p: &SgmParams,
 ) -> Result<(), String> {
     p.validate()?;
+    if w == 0 || h == 0 {
+        return Err(format!("the images are {w}x{h}: nothing to match"));
+    }
     if left.len() != w * h || right.len() != w * h {
         return Err(format!("images must be {w}x{h} gray"));
     }

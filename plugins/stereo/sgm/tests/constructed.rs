@@ -309,6 +309,41 @@ fn the_fast_path_gives_exactly_the_reference_output() {
 }
 
 #[test]
+fn an_empty_image_is_refused_and_a_tiny_one_matched_not_a_panic() {
+    for (w, h) in [(0, 5), (7, 0), (0, 0)] {
+        let e = sgm(
+            &[],
+            &[],
+            w,
+            h,
+            None,
+            &SgmParams::default(),
+            &mut Scratch::default(),
+        )
+        .unwrap_err();
+        assert!(e.contains(&format!("{w}x{h}")), "{e}");
+    }
+    // Narrower than the disparity range and the census window, on both code paths.
+    for (w, h) in [(1, 1), (3, 2), (16, 1), (1, 16), (5, 3)] {
+        let img = dots(w, h, 3);
+        for portable in [false, true] {
+            misslam_depth_sgm::simd::force_portable(portable);
+            let d = sgm(
+                &img,
+                &img,
+                w,
+                h,
+                None,
+                &SgmParams::default(),
+                &mut Scratch::default(),
+            );
+            misslam_depth_sgm::simd::force_portable(false);
+            assert_eq!(d.unwrap().len(), w * h, "{w}x{h}");
+        }
+    }
+}
+
+#[test]
 fn p2_beyond_the_lane_bound_a_huge_uniqueness_and_a_wrong_mask_are_refused() {
     let p = SgmParams {
         p2: 5000,
