@@ -436,3 +436,46 @@ fn learned_tests_match_held_out_colon_frames_better_than_gaussian_ones() {
         total[1].0
     );
 }
+
+#[test]
+fn empty_and_tiny_images_give_no_features_or_an_error_never_a_panic() {
+    let sizes = [
+        (0, 0),
+        (0, 5),
+        (5, 0),
+        (1, 1),
+        (3, 2),
+        (40, 1),
+        (1, 40),
+        (31, 31),
+    ];
+    for (w, h) in sizes {
+        let img: Vec<u8> = (0..w * h).map(|i| (i * 37 % 251) as u8).collect();
+        let (mut k, mut d) = (Vec::new(), Vec::new());
+        let orb = extract(
+            &img,
+            w,
+            h,
+            &OrbParams::default(),
+            &mut OrbScratch::default(),
+            &mut k,
+            &mut d,
+        );
+        if orb.is_ok() {
+            assert_eq!(k.len(), d.len(), "ORB {w}x{h}");
+        }
+        for dense in [false, true] {
+            let p = SurfParams {
+                dense: DenseParams {
+                    enabled: dense,
+                    ..DenseParams::default()
+                },
+                ..SurfParams::default()
+            };
+            let (mut k, mut d) = (Vec::new(), Vec::new());
+            if surf::extract(&img, w, h, &p, &mut SurfScratch::default(), &mut k, &mut d).is_ok() {
+                assert_eq!(k.len(), d.len(), "SURF {w}x{h}, dense {dense}");
+            }
+        }
+    }
+}
