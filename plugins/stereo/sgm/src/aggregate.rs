@@ -32,6 +32,8 @@ pub(crate) struct PassScratch {
     pub(crate) row_path: Vec<i16>,
     /// P2 of each path into each pixel of the current row (AVX2 pass): NV + 1 rows of W.
     pub(crate) p2_row: Vec<i16>,
+    /// Costs of the current row as bytes, W x D' (AVX2 pass, when they are not kept).
+    pub(crate) cost_u8: Vec<u8>,
 }
 
 impl PassScratch {
@@ -50,6 +52,8 @@ impl PassScratch {
         self.holding.resize(dp, 0);
         self.cost.clear();
         self.cost.resize(w * dp, FAR);
+        self.cost_u8.clear();
+        self.cost_u8.resize(w * dp, 0);
         // LANES more at the end: the SIMD costs read whole chunks of candidates.
         self.rev.clear();
         self.rev.resize(w + 2 * ctx.rev_pad() + LANES, 0);
@@ -85,37 +89,24 @@ impl PassScratch {
     /// the caller's target features (POPCNT) apply.
     #[inline(always)]
     pub(crate) fn row_costs(&mut self, ctx: &Ctx, y: usize, costs: &mut Costs) {
-        self.row_costs_with(ctx, y, costs, cost_row);
-    }
-
-    /// [`Self::row_costs`] with the Hamming costs of a row computed by `compute` (a SIMD
-    /// version of [`cost_row`]).
-    #[inline(always)]
-    pub(crate) fn row_costs_with(
-        &mut self,
-        ctx: &Ctx,
-        y: usize,
-        costs: &mut Costs,
-        compute: impl Fn(&Ctx, usize, usize, i16, &mut [u64], &mut [i16]),
-    ) {
         let (w, nd, dp) = (ctx.w, ctx.nd, ctx.dp);
         let pad = ctx.rev_pad();
         let unknown = i16::from(ctx.p.unknown_cost());
         match costs {
-            Costs::Compute => compute(ctx, y, pad, unknown, &mut self.rev, &mut self.cost),
+            Costs::Compute => cost_row(ctx, y, pad, unknown, &mut self.rev, &mut self.cost),
             Costs::Store(vol) => {
-                compute(ctx, y, pad, unknown, &mut self.rev, &mut self.cost);
-                let dst = &mut vol[y * w * nd..(y + 1) * w * nd];
-                for (d, c) in dst.chunks_exact_mut(nd).zip(self.cost.chunks_exact(dp)) {
-                    for (o, &v) in d.iter_mut().zip(c) {
+                cost_row(ctx, y, pad, unknown, &mut self.rev, &mut self.cost);
+                let dst = &mut vol[y * w * dp..(y + 1) * w * dp];
+                for (d, c) in dst.chunks_exact_mut(dp).zip(self.cost.chunks_exact(dp)) {
+                    for (o, &v) in d[..nd].iter_mut().zip(c) {
                         *o = v as u8;
                     }
                 }
             }
             Costs::Load(vol) => {
-                let src = &vol[y * w * nd..(y + 1) * w * nd];
-                for (c, d) in self.cost.chunks_exact_mut(dp).zip(src.chunks_exact(nd)) {
-                    for (o, &v) in c.iter_mut().zip(d) {
+                let src = &vol[y * w * dp..(y + 1) * w * dp];
+                for (c, d) in self.cost.chunks_exact_mut(dp).zip(src.chunks_exact(dp)) {
+                    for (o, &v) in c[..nd].iter_mut().zip(d) {
                         *o = i16::from(v);
                     }
                 }
@@ -200,7 +191,7 @@ impl Ctx<'_> {
 }
 
 /// Where a pass gets its matching costs: computed from the census images, computed and kept
-/// (H x W x D u8) for the other pass, or read from that volume.
+/// (H x W x D' u8, the lanes from D to D' unused) for the other pass, or read from that volume.
 pub(crate) enum Costs<'a> {
     Compute,
     Store(&'a mut [u8]),

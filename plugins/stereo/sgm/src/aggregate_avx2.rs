@@ -70,11 +70,12 @@ struct Paths<const NP: usize> {
 #[inline]
 unsafe fn pixel<const NP: usize, const HELD: usize, const INIT: bool>(
     chunks: usize,
-    cost: *const i16,
+    cost: *const u8,
     init: *const i16,
     acc: *mut i16,
     paths: &Paths<NP>,
     p1: __m256i,
+    far_pad: __m256i,
 ) -> [i16; NP] {
     // SAFETY: the caller guarantees the extents (see the doc above).
     unsafe {
@@ -94,7 +95,10 @@ unsafe fn pixel<const NP: usize, const HELD: usize, const INIT: bool>(
         );
         for q in 0..chunks {
             let at = q * LANES;
-            let c = _mm256_loadu_si256(cost.add(at).cast());
+            let mut c = _mm256_cvtepu8_epi16(_mm_loadu_si128(cost.add(at).cast()));
+            if q + 1 == chunks {
+                c = _mm256_or_si256(c, far_pad);
+            }
             let mut sum = if INIT {
                 _mm256_loadu_si256(init.add(at).cast())
             } else {
@@ -167,7 +171,24 @@ fn pass_n<const NV: usize, const NP: usize, const HELD: usize, const INIT: bool>
     ps.begin(ctx, NV);
     assert_eq!(ps.paths.len(), NV * (w + 2) * stride + GUARD);
     assert!(ps.mins.len() == NV * (w + 2) && ps.row_path.len() == stride + GUARD);
-    assert!(ps.held.len() == dp && ps.holding.len() == dp && ps.cost.len() == row_len);
+    assert!(ps.held.len() == dp && ps.holding.len() == dp && ps.cost_u8.len() == row_len);
+    match &costs {
+        Costs::Compute => {}
+        Costs::Store(vol) => assert!(vol.len() >= h * row_len),
+        Costs::Load(vol) => assert!(vol.len() >= h * row_len),
+    }
+    let pad = ctx.rev_pad();
+    let unknown = ctx.p.unknown_cost();
+    // The lanes from D to D' of the last chunk read FAR, so they never win.
+    let far_pad: [i16; LANES] = std::array::from_fn(|l| {
+        if (chunks - 1) * LANES + l < ctx.nd {
+            0
+        } else {
+            FAR
+        }
+    });
+    // SAFETY: `far_pad` holds LANES i16.
+    let far_pad = unsafe { _mm256_loadu_si256(far_pad.as_ptr().cast()) };
     let p1 = _mm256_set1_epi16(ctx.p.p1 as i16);
     let table = ctx.p2_table();
     ps.p2_row.clear();
@@ -176,10 +197,23 @@ fn pass_n<const NV: usize, const NP: usize, const HELD: usize, const INIT: bool>
     let mut holding = ps.holding.as_mut_ptr();
     for k in 0..h {
         let y = if forward { k } else { h - 1 - k };
-        ps.row_costs_with(ctx, y, &mut costs, |c, y, pad, unknown, rev, cost| {
-            // SAFETY: this pass only runs where AVX2 and POPCNT were detected.
-            unsafe { cost_row(c, y, pad, unknown, rev, cost) }
-        });
+        // The row's costs as bytes (W x D'): computed into the row buffer, computed into the
+        // volume kept for the other pass, or read from it.
+        let cells = y * row_len..(y + 1) * row_len;
+        let cost_row: *const u8 = match &mut costs {
+            Costs::Compute => {
+                // SAFETY: this pass only runs where AVX2 and POPCNT were detected.
+                unsafe { cost_row(ctx, y, pad, unknown, &mut ps.rev, &mut ps.cost_u8) };
+                ps.cost_u8.as_ptr()
+            }
+            Costs::Store(vol) => {
+                let row = &mut vol[cells];
+                // SAFETY: as above.
+                unsafe { cost_row(ctx, y, pad, unknown, &mut ps.rev, row) };
+                row.as_ptr()
+            }
+            Costs::Load(vol) => vol[cells].as_ptr(),
+        };
         // The path along the row starts from zero (L = C at the border), and so does the
         // held-back L the first pixel stores over the border slot.
         ps.row_path[GUARD..GUARD + dp].fill(0);
@@ -227,7 +261,6 @@ fn pass_n<const NV: usize, const NP: usize, const HELD: usize, const INIT: bool>
         let mins = ps.mins.as_mut_ptr();
         let p2_row = ps.p2_row.as_ptr();
         let row_path = ps.row_path.as_mut_ptr();
-        let cost_row = ps.cost.as_ptr();
         let acc_row = out_row.as_mut_ptr();
         let init_row = init.map_or(std::ptr::null(), |s| s[y * row_len..].as_ptr());
         for j in 0..w {
@@ -276,6 +309,7 @@ fn pass_n<const NV: usize, const NP: usize, const HELD: usize, const INIT: bool>
                     acc_row.add(x * dp),
                     &pp,
                     p1,
+                    far_pad,
                 );
                 for v in 0..NV {
                     if v == HELD {
@@ -315,21 +349,14 @@ fn popcnt64(v: __m256i, table: __m256i, low: __m256i) -> __m256i {
     _mm256_sad_epu8(bytes, _mm256_setzero_si256())
 }
 
-/// [`crate::aggregate::cost_row`] 16 disparities at a time: the Hamming distances of four
-/// candidates per register, packed to 16 i16 lanes in disparity order. Lanes from D to D' are
-/// kept at FAR.
+/// [`crate::aggregate::cost_row`] 16 disparities at a time, as bytes: the Hamming distances of
+/// four candidates per register, packed to 16 lanes in disparity order. The lanes from D to D'
+/// are left as computed: the pass reads them as FAR.
 ///
 /// # Safety
-/// The CPU has AVX2; `rev` holds `w + 2 * pad + LANES` entries and `cost` W x D' lanes.
+/// The CPU has AVX2; `rev` holds `w + 2 * pad + LANES` entries and `cost` W x D' bytes.
 #[target_feature(enable = "avx2")]
-unsafe fn cost_row(
-    ctx: &Ctx,
-    y: usize,
-    pad: usize,
-    unknown: i16,
-    rev: &mut [u64],
-    cost: &mut [i16],
-) {
+unsafe fn cost_row(ctx: &Ctx, y: usize, pad: usize, unknown: u8, rev: &mut [u64], cost: &mut [u8]) {
     let (w, nd, dp) = (ctx.w, ctx.nd, ctx.dp);
     let chunks = dp / LANES;
     let dmin = ctx.p.min_disparity as isize;
@@ -344,18 +371,12 @@ unsafe fn cost_row(
         0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4,
     );
     let low = _mm256_set1_epi8(0x0f);
-    // Lanes of the last chunk at or beyond D keep FAR.
-    let last: [i16; LANES] =
-        std::array::from_fn(|l| if (chunks - 1) * LANES + l < nd { 0 } else { -1 });
-    // SAFETY: `last` holds LANES i16.
-    let last = unsafe { _mm256_loadu_si256(last.as_ptr().cast()) };
-    let far = _mm256_set1_epi16(FAR);
     let order = _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7);
     for (x, &c) in ctx.cl[y * w..(y + 1) * w].iter().enumerate() {
         let t0 = (pad as isize + w as isize - 1 - x as isize + dmin) as usize;
         let cv = _mm256_set1_epi64x(c as i64);
         // SAFETY: t0 + dp <= w + 2 * pad + LANES (t0 <= pad + w - 1 + dmin, dp < nd + LANES,
-        // pad >= nd + |dmin| + 1) and the cell x * dp.. holds dp lanes (asserted above).
+        // pad >= nd + |dmin| + 1) and the cell x * dp.. holds dp bytes (asserted above).
         unsafe {
             let src = rev.as_ptr().add(t0);
             let dst = cost.as_mut_ptr().add(x * dp);
@@ -367,14 +388,13 @@ unsafe fn cost_row(
                 };
                 // Lanes (d0, d1 | d2, d3), (d4, d5 | d6, d7), ... as u64; two 32-bit packs
                 // give (d0 d1 d4 d5 d8 d9 d12 d13 | d2 d3 d6 d7 d10 d11 d14 d15), and a
-                // permutation of the 32-bit pairs restores the order.
+                // permutation of the 32-bit pairs restores the order; then 16 bytes from the
+                // low quadwords of both halves.
                 let p01 = _mm256_packus_epi32(count(0), count(1));
                 let p23 = _mm256_packus_epi32(count(2), count(3));
-                let mut v = _mm256_permutevar8x32_epi32(_mm256_packus_epi32(p01, p23), order);
-                if q + 1 == chunks {
-                    v = _mm256_blendv_epi8(v, far, last);
-                }
-                _mm256_storeu_si256(dst.add(at).cast(), v);
+                let v = _mm256_permutevar8x32_epi32(_mm256_packus_epi32(p01, p23), order);
+                let b = _mm256_permute4x64_epi64::<0b1000>(_mm256_packus_epi16(v, v));
+                _mm_storeu_si128(dst.add(at).cast(), _mm256_castsi256_si128(b));
             }
         }
         let cell = &mut cost[x * dp..x * dp + nd];

@@ -305,7 +305,7 @@ pub fn sgm(
             );
     } else {
         sum_b.clear();
-        cost_vol.resize(h * w * nd, 0);
+        cost_vol.resize(h * w * dp, 0);
         pass(
             true,
             &ctx,
