@@ -116,21 +116,25 @@ fn select_row_avx2(
             continue;
         }
         let cell = x * dp;
+        // Per lane the minimum and the first d that reaches it (a strict compare keeps the
+        // earlier chunk on ties); then the smallest such d among the lanes at the overall
+        // minimum. No branch on where the minimum lies.
         let mut m = load(cell);
+        let mut idx = lane_ids;
         for q in 1..chunks {
-            m = _mm256_min_epi16(m, load(cell + q * LANES));
+            let c = load(cell + q * LANES);
+            let lower = _mm256_cmpgt_epi16(m, c);
+            let d = _mm256_add_epi16(lane_ids, _mm256_set1_epi16((q * LANES) as i16));
+            idx = _mm256_blendv_epi8(idx, d, lower);
+            m = _mm256_min_epi16(m, c);
         }
         let best = hmin_avx2(m);
         let bv = _mm256_set1_epi16(best);
-        let mut bd = 0usize;
-        for q in 0..chunks {
-            let eq = _mm256_movemask_epi8(_mm256_cmpeq_epi16(load(cell + q * LANES), bv));
-            if eq != 0 {
-                bd = q * LANES + eq.trailing_zeros() as usize / 2;
-                break;
-            }
-        }
-        let bdv = _mm256_set1_epi16(bd as i16);
+        // Lanes not at the minimum take d = i16::MAX; d < 1024 otherwise.
+        let at_best = _mm256_cmpeq_epi16(m, bv);
+        let bdv = hmin_avx2(_mm256_blendv_epi8(far, idx, at_best));
+        let bd = bdv as usize;
+        let bdv = _mm256_set1_epi16(bdv);
         let two = _mm256_set1_epi16(2);
         let mut sec = far;
         for q in 0..chunks {
