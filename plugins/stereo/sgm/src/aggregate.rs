@@ -34,6 +34,12 @@ pub(crate) struct PassScratch {
     pub(crate) p2_row: Vec<i16>,
     /// Costs of the current row as bytes, W x D' (AVX2 pass, when they are not kept).
     pub(crate) cost_u8: Vec<u8>,
+    /// `paths`, `held`, `holding` and `row_path` in u8 lanes for the AVX2 pass with narrow
+    /// lanes (guards of 32 lanes at 255).
+    pub(crate) paths8: Vec<u8>,
+    pub(crate) held8: Vec<u8>,
+    pub(crate) holding8: Vec<u8>,
+    pub(crate) row_path8: Vec<u8>,
 }
 
 impl PassScratch {
@@ -57,6 +63,27 @@ impl PassScratch {
         // LANES more at the end: the SIMD costs read whole chunks of candidates.
         self.rev.clear();
         self.rev.resize(w + 2 * ctx.rev_pad() + LANES, 0);
+    }
+
+    /// Sizes and resets the u8 path buffers (narrow AVX2 pass): as [`Self::begin`] with guards
+    /// of 32 lanes at 255.
+    #[cfg(target_arch = "x86_64")]
+    pub(crate) fn begin_narrow(&mut self, ctx: &Ctx, nv: usize) {
+        let (w, dp) = (ctx.w, ctx.dp);
+        let push = |buf: &mut Vec<u8>, slots: usize| {
+            buf.clear();
+            for _ in 0..slots {
+                buf.extend(std::iter::repeat_n(255, 32));
+                buf.extend(std::iter::repeat_n(0, dp));
+            }
+            buf.extend(std::iter::repeat_n(255, 32));
+        };
+        push(&mut self.paths8, nv * (w + 2));
+        push(&mut self.row_path8, 1);
+        self.held8.clear();
+        self.held8.resize(dp, 0);
+        self.holding8.clear();
+        self.holding8.resize(dp, 0);
     }
 
     /// Starts row `y`: its matching costs, and the path along the row from zero at the border
@@ -159,6 +186,8 @@ pub(crate) struct Ctx<'a> {
     pub(crate) p: &'a SgmParams,
     /// dx of the paths that come from the previous row.
     pub(crate) vdx: &'a [isize],
+    /// The AVX2 pass runs the paths in u8 lanes (C_max + P2 <= 255; D' a multiple of 32).
+    pub(crate) narrow: bool,
 }
 
 impl Ctx<'_> {

@@ -7,10 +7,15 @@
 //! that would overwrite an L its right-hand neighbour still has to read holds its new L back a
 //! pixel. The Hamming costs of a row are computed 16 disparities at a time too (nibble-table
 //! popcounts, [`cost_row`]).
+//!
+//! Every L lies in 0..=C_max + P2 (C_max: the census bits). When that is at most 255 (the
+//! defaults: 62 + 120) the paths run in u8 lanes, 32 disparities per register, with saturating
+//! adds ([`Narrow`]); otherwise in i16 lanes ([`Wide`]). The sums stay i16. Saturation at 255
+//! cannot change a minimum: every L, and so every candidate that can win, is at most 255.
 
 use std::arch::x86_64::*;
 
-use crate::aggregate::{Costs, Ctx, PassScratch, FAR, GUARD, LANES};
+use crate::aggregate::{Costs, Ctx, PassScratch, FAR, LANES};
 
 /// One pass (see [`crate::aggregate::pass`]). Only called after AVX2 and POPCNT were detected.
 #[target_feature(enable = "avx2,popcnt")]
@@ -25,14 +30,160 @@ pub(crate) fn pass(
 ) {
     // The path held back: the one from the previous row's pixel behind this one (dx = the
     // step along the row), index 0 of [1, 0, -1] forward and 2 backward; none with 4 paths.
+    if ctx.narrow {
+        kind::<Narrow>(forward, ctx, ps, init, costs, out, after_row);
+    } else {
+        kind::<Wide>(forward, ctx, ps, init, costs, out, after_row);
+    }
+}
+
+#[target_feature(enable = "avx2,popcnt")]
+#[inline]
+fn kind<K: Kind>(
+    forward: bool,
+    ctx: &Ctx,
+    ps: &mut PassScratch,
+    init: Option<&[i16]>,
+    costs: Costs,
+    out: &mut [i16],
+    after_row: impl FnMut(usize, &mut [i16]),
+) {
     let (f, i) = (forward, init.is_some());
     match (ctx.vdx.len(), f, i) {
-        (3, true, true) => pass_n::<3, 4, 0, true>(f, ctx, ps, init, costs, out, after_row),
-        (3, true, false) => pass_n::<3, 4, 0, false>(f, ctx, ps, init, costs, out, after_row),
-        (3, false, true) => pass_n::<3, 4, 2, true>(f, ctx, ps, init, costs, out, after_row),
-        (3, false, false) => pass_n::<3, 4, 2, false>(f, ctx, ps, init, costs, out, after_row),
-        (_, _, true) => pass_n::<1, 2, 2, true>(f, ctx, ps, init, costs, out, after_row),
-        (_, _, false) => pass_n::<1, 2, 2, false>(f, ctx, ps, init, costs, out, after_row),
+        (3, true, true) => pass_n::<K, 3, 4, 0, true>(f, ctx, ps, init, costs, out, after_row),
+        (3, true, false) => pass_n::<K, 3, 4, 0, false>(f, ctx, ps, init, costs, out, after_row),
+        (3, false, true) => pass_n::<K, 3, 4, 2, true>(f, ctx, ps, init, costs, out, after_row),
+        (3, false, false) => pass_n::<K, 3, 4, 2, false>(f, ctx, ps, init, costs, out, after_row),
+        (_, _, true) => pass_n::<K, 1, 2, 2, true>(f, ctx, ps, init, costs, out, after_row),
+        (_, _, false) => pass_n::<K, 1, 2, 2, false>(f, ctx, ps, init, costs, out, after_row),
+    }
+}
+
+/// The lane type of the paths: i16 ([`Wide`]) or u8 ([`Narrow`]).
+pub(crate) trait Kind {
+    /// One L.
+    type E: Copy;
+    /// Lanes per register.
+    const LANES: usize;
+    /// The path buffers of this kind in the scratch: the rows of paths, held, holding and the
+    /// path along the row.
+    fn buffers(ps: &mut PassScratch) -> [&mut Vec<Self::E>; 4];
+    /// Sizes and resets the buffers (as [`PassScratch::begin`] for i16).
+    fn begin(ps: &mut PassScratch, ctx: &Ctx, nv: usize);
+    /// A value broadcast to every lane (at most 255 for u8: saturated).
+    fn splat(v: i16) -> __m256i;
+    /// [`pixel`] for this lane type.
+    ///
+    /// # Safety
+    /// As [`pixel`], in elements of `Self::E`.
+    unsafe fn pixel<const NP: usize, const HELD: usize, const INIT: bool>(
+        chunks: usize,
+        cost: *const u8,
+        init: *const i16,
+        acc: *mut i16,
+        paths: &Paths<NP, Self::E>,
+        p1: __m256i,
+        pads: &Pads,
+    ) -> [i16; NP];
+}
+
+/// Paths in i16 lanes, 16 disparities per register.
+pub(crate) struct Wide;
+/// Paths in u8 lanes, 32 disparities per register (when C_max + P2 <= 255).
+pub(crate) struct Narrow;
+
+/// What the lanes from D to D' of the last chunk get: FAR costs in i16 lanes (`wide`), 255
+/// costs in u8 lanes (`narrow`), and FAR sums in the two i16 halves of a u8 chunk (`sums`).
+pub(crate) struct Pads {
+    wide: __m256i,
+    narrow: __m256i,
+    sums: [__m256i; 2],
+}
+
+impl Pads {
+    #[target_feature(enable = "avx2")]
+    fn new(ctx: &Ctx, lanes: usize) -> Pads {
+        let last = ctx.dp - lanes;
+        let wide: [i16; 16] =
+            std::array::from_fn(|l| if ctx.dp - 16 + l < ctx.nd { 0 } else { FAR });
+        let narrow: [u8; 32] = std::array::from_fn(|l| if last + l < ctx.nd { 0 } else { 255 });
+        let sums: [i16; 32] = std::array::from_fn(|l| if last + l < ctx.nd { 0 } else { FAR });
+        // SAFETY: each array holds 32 bytes (the sums two halves of 32).
+        unsafe {
+            Pads {
+                wide: _mm256_loadu_si256(wide.as_ptr().cast()),
+                narrow: _mm256_loadu_si256(narrow.as_ptr().cast()),
+                sums: [
+                    _mm256_loadu_si256(sums.as_ptr().cast()),
+                    _mm256_loadu_si256(sums[16..].as_ptr().cast()),
+                ],
+            }
+        }
+    }
+}
+
+impl Kind for Wide {
+    type E = i16;
+    const LANES: usize = LANES;
+    fn buffers(ps: &mut PassScratch) -> [&mut Vec<i16>; 4] {
+        [
+            &mut ps.paths,
+            &mut ps.held,
+            &mut ps.holding,
+            &mut ps.row_path,
+        ]
+    }
+    fn begin(ps: &mut PassScratch, ctx: &Ctx, nv: usize) {
+        ps.begin(ctx, nv);
+    }
+    fn splat(v: i16) -> __m256i {
+        // SAFETY: a broadcast; AVX is present wherever this pass runs.
+        unsafe { _mm256_set1_epi16(v) }
+    }
+    unsafe fn pixel<const NP: usize, const HELD: usize, const INIT: bool>(
+        chunks: usize,
+        cost: *const u8,
+        init: *const i16,
+        acc: *mut i16,
+        paths: &Paths<NP, i16>,
+        p1: __m256i,
+        pads: &Pads,
+    ) -> [i16; NP] {
+        // SAFETY: forwarded (see `Kind::pixel`).
+        unsafe { pixel::<NP, HELD, INIT>(chunks, cost, init, acc, paths, p1, pads.wide) }
+    }
+}
+
+impl Kind for Narrow {
+    type E = u8;
+    const LANES: usize = 32;
+    fn buffers(ps: &mut PassScratch) -> [&mut Vec<u8>; 4] {
+        [
+            &mut ps.paths8,
+            &mut ps.held8,
+            &mut ps.holding8,
+            &mut ps.row_path8,
+        ]
+    }
+    fn begin(ps: &mut PassScratch, ctx: &Ctx, nv: usize) {
+        ps.begin(ctx, nv);
+        ps.begin_narrow(ctx, nv);
+    }
+    fn splat(v: i16) -> __m256i {
+        // SAFETY: a broadcast; AVX is present wherever this pass runs.
+        unsafe { _mm256_set1_epi8(v.clamp(0, 255) as u8 as i8) }
+    }
+    unsafe fn pixel<const NP: usize, const HELD: usize, const INIT: bool>(
+        chunks: usize,
+        cost: *const u8,
+        init: *const i16,
+        acc: *mut i16,
+        paths: &Paths<NP, u8>,
+        p1: __m256i,
+        pads: &Pads,
+    ) -> [i16; NP] {
+        // SAFETY: forwarded (see `Kind::pixel`).
+        unsafe { pixel_narrow::<NP, HELD, INIT>(chunks, cost, init, acc, paths, p1, pads) }
     }
 }
 
@@ -48,12 +199,12 @@ fn hmin(v: __m256i) -> i16 {
 /// d = 0 of a segment with a guard lane at FAR before it and one after its last chunk; `dst`
 /// may be `src`), and their `min(prev) + P2` and `min(prev)`, broadcast. The held-back path
 /// also gets `held`, the previous pixel's L, stored over its `src` once read.
-struct Paths<const NP: usize> {
-    src: [*mut i16; NP],
-    dst: [*mut i16; NP],
+pub(crate) struct Paths<const NP: usize, E> {
+    src: [*mut E; NP],
+    dst: [*mut E; NP],
     jump: [__m256i; NP],
     min_prev: [__m256i; NP],
-    held: *const i16,
+    held: *const E,
 }
 
 /// Advances the `NP` paths of one pixel over its `chunks` x 16 disparities: each path's
@@ -73,7 +224,7 @@ unsafe fn pixel<const NP: usize, const HELD: usize, const INIT: bool>(
     cost: *const u8,
     init: *const i16,
     acc: *mut i16,
-    paths: &Paths<NP>,
+    paths: &Paths<NP, i16>,
     p1: __m256i,
     far_pad: __m256i,
 ) -> [i16; NP] {
@@ -143,11 +294,116 @@ unsafe fn pixel<const NP: usize, const HELD: usize, const INIT: bool>(
     }
 }
 
+/// Minimum of 32 u8 lanes.
+#[target_feature(enable = "avx2")]
+#[inline]
+fn hmin_u8(v: __m256i) -> i16 {
+    let m = _mm_min_epu8(_mm256_castsi256_si128(v), _mm256_extracti128_si256::<1>(v));
+    let m = _mm_min_epu8(m, _mm_srli_si128::<8>(m));
+    _mm_cvtsi128_si32(_mm_minpos_epu16(_mm_cvtepu8_epi16(m))) as i16
+}
+
+/// [`pixel`] in u8 lanes, 32 disparities per register: the same recurrence with saturating u8
+/// adds (every L is at most 255, see the module doc). The sums are kept in two i16 registers
+/// in the order of the byte unpacks (disparities 0-7 and 16-23, then 8-15 and 24-31) and
+/// reordered when stored; the lanes from D to D' get FAR sums.
+///
+/// # Safety
+/// As [`pixel`], with `chunks` x 32 lanes of u8 for the paths and the costs.
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn pixel_narrow<const NP: usize, const HELD: usize, const INIT: bool>(
+    chunks: usize,
+    cost: *const u8,
+    init: *const i16,
+    acc: *mut i16,
+    paths: &Paths<NP, u8>,
+    p1: __m256i,
+    pads: &Pads,
+) -> [i16; NP] {
+    const W: usize = 32;
+    // SAFETY: the caller guarantees the extents (see the doc above).
+    unsafe {
+        let zero = _mm256_setzero_si256();
+        let mut mn = [_mm256_set1_epi8(-1); NP];
+        let mut below: [__m256i; NP] = std::array::from_fn(|v| {
+            _mm256_loadu_si256(paths.src[v].wrapping_sub(1).cast_const().cast())
+        });
+        let row = paths.src[NP - 1];
+        let (mut lo, mut mid) = (
+            _mm256_loadu_si256(row.sub(W).cast_const().cast()),
+            _mm256_loadu_si256(row.cast_const().cast()),
+        );
+        for q in 0..chunks {
+            let at = q * W;
+            let mut c = _mm256_loadu_si256(cost.add(at).cast());
+            let last = q + 1 == chunks;
+            if last {
+                c = _mm256_or_si256(c, pads.narrow);
+            }
+            let (mut s_lo, mut s_hi) = if INIT {
+                let (i0, i1) = (
+                    _mm256_loadu_si256(init.add(at).cast()),
+                    _mm256_loadu_si256(init.add(at + 16).cast()),
+                );
+                (
+                    _mm256_permute2x128_si256::<0x20>(i0, i1),
+                    _mm256_permute2x128_si256::<0x31>(i0, i1),
+                )
+            } else {
+                (zero, zero)
+            };
+            for (v, m) in mn.iter_mut().enumerate() {
+                let s = paths.src[v].add(at);
+                let (a, am, ap);
+                if v + 1 == NP {
+                    let hi = _mm256_loadu_si256(s.add(W).cast_const().cast());
+                    a = mid;
+                    am = _mm256_alignr_epi8::<15>(a, _mm256_permute2x128_si256::<0x21>(lo, a));
+                    ap = _mm256_alignr_epi8::<1>(_mm256_permute2x128_si256::<0x21>(a, hi), a);
+                    (lo, mid) = (a, hi);
+                } else {
+                    a = _mm256_loadu_si256(s.cast_const().cast());
+                    am = below[v];
+                    ap = _mm256_loadu_si256(s.add(1).cast_const().cast());
+                    below[v] = _mm256_loadu_si256(s.add(W - 1).cast_const().cast());
+                }
+                let best = _mm256_min_epu8(
+                    _mm256_min_epu8(a, paths.jump[v]),
+                    _mm256_adds_epu8(_mm256_min_epu8(am, ap), p1),
+                );
+                // best >= min(prev): the subtraction does not wrap.
+                let l = _mm256_adds_epu8(c, _mm256_sub_epi8(best, paths.min_prev[v]));
+                *m = _mm256_min_epu8(*m, l);
+                s_lo = _mm256_adds_epi16(s_lo, _mm256_unpacklo_epi8(l, zero));
+                s_hi = _mm256_adds_epi16(s_hi, _mm256_unpackhi_epi8(l, zero));
+                if v == HELD {
+                    _mm256_storeu_si256(s.cast(), _mm256_loadu_si256(paths.held.add(at).cast()));
+                }
+                _mm256_storeu_si256(paths.dst[v].add(at).cast(), l);
+            }
+            let mut o0 = _mm256_permute2x128_si256::<0x20>(s_lo, s_hi);
+            let mut o1 = _mm256_permute2x128_si256::<0x31>(s_lo, s_hi);
+            if last {
+                o0 = _mm256_or_si256(o0, pads.sums[0]);
+                o1 = _mm256_or_si256(o1, pads.sums[1]);
+            }
+            _mm256_storeu_si256(acc.add(at).cast(), o0);
+            _mm256_storeu_si256(acc.add(at + 16).cast(), o1);
+        }
+        let mut out = [0i16; NP];
+        for (o, m) in out.iter_mut().zip(mn) {
+            *o = hmin_u8(m);
+        }
+        out
+    }
+}
+
 /// NV paths from the previous row plus the path along the row (NP = NV + 1); path HELD of the
 /// NV (none when >= NV) is held back a pixel.
 #[target_feature(enable = "avx2,popcnt")]
 #[inline]
-fn pass_n<const NV: usize, const NP: usize, const HELD: usize, const INIT: bool>(
+fn pass_n<K: Kind, const NV: usize, const NP: usize, const HELD: usize, const INIT: bool>(
     forward: bool,
     ctx: &Ctx,
     ps: &mut PassScratch,
@@ -158,8 +414,11 @@ fn pass_n<const NV: usize, const NP: usize, const HELD: usize, const INIT: bool>
 ) {
     assert_eq!(NP, NV + 1);
     let (w, h, dp) = (ctx.w, ctx.h, ctx.dp);
-    let stride = ctx.stride();
-    let chunks = dp / LANES;
+    // A guard of one register's lanes before each segment (and after the last).
+    let guard = K::LANES;
+    let stride = guard + dp;
+    assert!(dp.is_multiple_of(K::LANES));
+    let chunks = dp / K::LANES;
     let mut vdx = [0isize; NV];
     vdx.copy_from_slice(ctx.vdx);
     let step_x: isize = if forward { 1 } else { -1 };
@@ -168,10 +427,14 @@ fn pass_n<const NV: usize, const NP: usize, const HELD: usize, const INIT: bool>
     let whole = out.len() == h * row_len;
     let init = if INIT { init } else { None };
     assert!(out.len() >= row_len && init.is_none_or(|s| s.len() >= h * row_len));
-    ps.begin(ctx, NV);
-    assert_eq!(ps.paths.len(), NV * (w + 2) * stride + GUARD);
-    assert!(ps.mins.len() == NV * (w + 2) && ps.row_path.len() == stride + GUARD);
-    assert!(ps.held.len() == dp && ps.holding.len() == dp && ps.cost_u8.len() == row_len);
+    K::begin(ps, ctx, NV);
+    assert!(ps.mins.len() == NV * (w + 2) && ps.cost_u8.len() == row_len);
+    let [paths_v, held_v, holding_v, row_v] = K::buffers(ps);
+    assert_eq!(paths_v.len(), NV * (w + 2) * stride + guard);
+    assert!(row_v.len() == stride + guard && held_v.len() == dp && holding_v.len() == dp);
+    // The buffers are not resized during the pass.
+    let (paths, row_path) = (paths_v.as_mut_ptr(), row_v.as_mut_ptr());
+    let (mut held, mut holding) = (held_v.as_mut_ptr(), holding_v.as_mut_ptr());
     match &costs {
         Costs::Compute => {}
         Costs::Store(vol) => assert!(vol.len() >= h * row_len),
@@ -179,22 +442,12 @@ fn pass_n<const NV: usize, const NP: usize, const HELD: usize, const INIT: bool>
     }
     let pad = ctx.rev_pad();
     let unknown = ctx.p.unknown_cost();
-    // The lanes from D to D' of the last chunk read FAR, so they never win.
-    let far_pad: [i16; LANES] = std::array::from_fn(|l| {
-        if (chunks - 1) * LANES + l < ctx.nd {
-            0
-        } else {
-            FAR
-        }
-    });
-    // SAFETY: `far_pad` holds LANES i16.
-    let far_pad = unsafe { _mm256_loadu_si256(far_pad.as_ptr().cast()) };
-    let p1 = _mm256_set1_epi16(ctx.p.p1 as i16);
+    // The lanes from D to D' of the last chunk read the largest cost, so they never win.
+    let pads = Pads::new(ctx, K::LANES);
+    let p1 = K::splat(ctx.p.p1 as i16);
     let table = ctx.p2_table();
     ps.p2_row.clear();
     ps.p2_row.resize(NP * w, 0);
-    let mut held = ps.held.as_mut_ptr();
-    let mut holding = ps.holding.as_mut_ptr();
     for k in 0..h {
         let y = if forward { k } else { h - 1 - k };
         // The row's costs as bytes (W x D'): computed into the row buffer, computed into the
@@ -216,9 +469,12 @@ fn pass_n<const NV: usize, const NP: usize, const HELD: usize, const INIT: bool>
         };
         // The path along the row starts from zero (L = C at the border), and so does the
         // held-back L the first pixel stores over the border slot.
-        ps.row_path[GUARD..GUARD + dp].fill(0);
-        // SAFETY: `held` points at dp lanes (asserted above; the two buffers only swap).
-        unsafe { std::slice::from_raw_parts_mut(held, dp) }.fill(0);
+        // SAFETY: the row path holds guard + dp + guard lanes, `held` dp (asserted above; the
+        // two buffers only swap).
+        unsafe {
+            std::ptr::write_bytes(row_path.add(guard), 0, dp);
+            std::ptr::write_bytes(held, 0, dp);
+        }
         let prev_y = if forward { y.wrapping_sub(1) } else { y + 1 };
         // P2 of each path into each pixel of the row: by the intensity step from the pixel it
         // comes from, 0 where that lies outside the image (a path start).
@@ -257,16 +513,14 @@ fn pass_n<const NV: usize, const NP: usize, const HELD: usize, const INIT: bool>
         let mut held_min = 0i16;
         let o = if whole { y * row_len } else { 0 };
         let out_row = &mut out[o..o + row_len];
-        let paths = ps.paths.as_mut_ptr();
         let mins = ps.mins.as_mut_ptr();
         let p2_row = ps.p2_row.as_ptr();
-        let row_path = ps.row_path.as_mut_ptr();
         let acc_row = out_row.as_mut_ptr();
         let init_row = init.map_or(std::ptr::null(), |s| s[y * row_len..].as_ptr());
         for j in 0..w {
             let x = if forward { j } else { w - 1 - j };
             let zero = _mm256_setzero_si256();
-            let mut pp = Paths::<NP> {
+            let mut pp = Paths::<NP, K::E> {
                 src: [std::ptr::null_mut(); NP],
                 dst: [std::ptr::null_mut(); NP],
                 jump: [zero; NP],
@@ -287,29 +541,29 @@ fn pass_n<const NV: usize, const NP: usize, const HELD: usize, const INIT: bool>
                     slot[v] = s;
                     let mp = *mins.add(v * (w + 2) + s);
                     let p2 = *p2_row.add(v * w + x);
-                    pp.src[v] = paths.add((s * NV + v) * stride + GUARD);
+                    pp.src[v] = paths.add((s * NV + v) * stride + guard);
                     pp.dst[v] = if v == HELD {
                         holding
                     } else {
-                        paths.add(((x + 1) * NV + v) * stride + GUARD)
+                        paths.add(((x + 1) * NV + v) * stride + guard)
                     };
-                    pp.jump[v] = _mm256_set1_epi16(mp + p2);
-                    pp.min_prev[v] = _mm256_set1_epi16(mp);
+                    pp.jump[v] = K::splat(mp + p2);
+                    pp.min_prev[v] = K::splat(mp);
                 }
                 // The row path's P2 is 0 at the row's first pixel (its predecessor is outside).
                 let jump_h = row_min + *p2_row.add(NV * w + x);
-                pp.src[NV] = row_path.add(GUARD);
+                pp.src[NV] = row_path.add(guard);
                 pp.dst[NV] = pp.src[NV];
-                pp.jump[NV] = _mm256_set1_epi16(jump_h);
-                pp.min_prev[NV] = _mm256_set1_epi16(row_min);
-                let new_mins = pixel::<NP, HELD, INIT>(
+                pp.jump[NV] = K::splat(jump_h);
+                pp.min_prev[NV] = K::splat(row_min);
+                let new_mins = K::pixel::<NP, HELD, INIT>(
                     chunks,
                     cost_row.add(x * dp),
                     init_row.wrapping_add(x * dp),
                     acc_row.add(x * dp),
                     &pp,
                     p1,
-                    far_pad,
+                    &pads,
                 );
                 for v in 0..NV {
                     if v == HELD {
@@ -324,13 +578,16 @@ fn pass_n<const NV: usize, const NP: usize, const HELD: usize, const INIT: bool>
             }
             std::mem::swap(&mut held, &mut holding);
         }
-        // The buffer the last pixel's L went to becomes `ps.held` again.
-        if held == ps.holding.as_mut_ptr() {
-            std::mem::swap(&mut ps.held, &mut ps.holding);
-            (held, holding) = (ps.held.as_mut_ptr(), ps.holding.as_mut_ptr());
-        }
         if HELD < NV {
-            ps.flush_held(ctx, NV, HELD, forward, held_min);
+            // The last pixel's held-back L goes to its slot.
+            let x_last = if forward { w - 1 } else { 0 };
+            // SAFETY: slot x_last + 1 of segment HELD lies in `paths`, `held` holds dp lanes,
+            // and the minima NV (w + 2).
+            unsafe {
+                let s = ((x_last + 1) * NV + HELD) * stride + guard;
+                std::ptr::copy_nonoverlapping(held, paths.add(s), dp);
+                *mins.add(HELD * (w + 2) + x_last + 1) = held_min;
+            }
         }
         after_row(y, out_row);
     }

@@ -258,7 +258,11 @@ pub fn sgm(
         || census(right, w, h, cw, ch, census_r),
     );
     let nd = p.max_disparity as usize;
-    let dp = nd.div_ceil(LANES) * LANES;
+    // Every L is at most C_max + P2 (C_max: the census bits); when that fits a byte the AVX2
+    // pass runs the paths 32 disparities per register, in D' a multiple of 32.
+    let narrow = crate::simd::avx2() && (cw * ch - 1) + p.p2 as usize <= 255;
+    let lanes = if narrow { 2 * LANES } else { LANES };
+    let dp = nd.div_ceil(lanes) * lanes;
     let ctx = Ctx {
         img: left,
         cl: census_l,
@@ -269,6 +273,7 @@ pub fn sgm(
         dp,
         p,
         vdx: if p.paths == 8 { &[1, 0, -1] } else { &[0] },
+        narrow,
     };
     let mut disp = vec![f32::NAN; w * h];
     right_disp.clear();
