@@ -37,6 +37,8 @@ pub(crate) fn pass(
     }
 }
 
+/// The pass with the paths in lanes of kind `K`, monomorphised by the number of paths, the
+/// held-back path (by direction) and whether sums come in.
 #[target_feature(enable = "avx2,popcnt")]
 #[inline]
 fn kind<K: Kind>(
@@ -207,6 +209,48 @@ pub(crate) struct Paths<const NP: usize, E> {
     held: *const E,
 }
 
+/// The previous L at d, d - 1 and d + 1 of a path from the previous row, for the chunk of
+/// `lanes` lanes at `s`: unaligned loads, d - 1 from `below` (loaded before the chunk below was
+/// overwritten), which then gets the next chunk's.
+///
+/// # Safety
+/// `s - 1 .. s + 2 * lanes` is readable.
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn from_row<E>(s: *mut E, lanes: usize, below: &mut __m256i) -> (__m256i, __m256i, __m256i) {
+    // SAFETY: the caller guarantees the extent.
+    unsafe {
+        let a = _mm256_loadu_si256(s.cast_const().cast());
+        let am = *below;
+        let ap = _mm256_loadu_si256(s.add(1).cast_const().cast());
+        *below = _mm256_loadu_si256(s.add(lanes - 1).cast_const().cast());
+        (a, am, ap)
+    }
+}
+
+/// The same for the path along the row, from whole chunks (`lo`: the chunk below, `mid`: this
+/// one) and the one above, loaded here, with the lanes shifted by one element (`DOWN` =
+/// 16 - element bytes, `UP` = element bytes); the chunks then move up by one.
+///
+/// # Safety
+/// `s + lanes .. s + 2 * lanes` is readable.
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn along_row<const DOWN: i32, const UP: i32, E>(
+    s: *mut E,
+    lanes: usize,
+    lo: &mut __m256i,
+    mid: &mut __m256i,
+) -> (__m256i, __m256i, __m256i) {
+    // SAFETY: the caller guarantees the extent.
+    let hi = unsafe { _mm256_loadu_si256(s.add(lanes).cast_const().cast()) };
+    let a = *mid;
+    let am = _mm256_alignr_epi8::<DOWN>(a, _mm256_permute2x128_si256::<0x21>(*lo, a));
+    let ap = _mm256_alignr_epi8::<UP>(_mm256_permute2x128_si256::<0x21>(a, hi), a);
+    (*lo, *mid) = (a, hi);
+    (a, am, ap)
+}
+
 /// Advances the `NP` paths of one pixel over its `chunks` x 16 disparities: each path's
 /// `L = C + min(Lp[d], Lp[d-1] + P1, Lp[d+1] + P1, min(Lp) + P2) - min(Lp)` goes to its `dst`,
 /// and `acc = init (INIT) or 0, plus the sum of the new L` over the paths. Path `HELD` (none
@@ -257,19 +301,11 @@ unsafe fn pixel<const NP: usize, const HELD: usize, const INIT: bool>(
             };
             for (v, m) in mn.iter_mut().enumerate() {
                 let s = paths.src[v].add(at);
-                let (a, am, ap);
-                if v + 1 == NP {
-                    let hi = _mm256_loadu_si256(s.add(LANES).cast_const().cast());
-                    a = mid;
-                    am = _mm256_alignr_epi8::<14>(a, _mm256_permute2x128_si256::<0x21>(lo, a));
-                    ap = _mm256_alignr_epi8::<2>(_mm256_permute2x128_si256::<0x21>(a, hi), a);
-                    (lo, mid) = (a, hi);
+                let (a, am, ap) = if v + 1 == NP {
+                    along_row::<14, 2, _>(s, LANES, &mut lo, &mut mid)
                 } else {
-                    a = _mm256_loadu_si256(s.cast_const().cast());
-                    am = below[v];
-                    ap = _mm256_loadu_si256(s.add(1).cast_const().cast());
-                    below[v] = _mm256_loadu_si256(s.add(LANES - 1).cast_const().cast());
-                }
+                    from_row(s, LANES, &mut below[v])
+                };
                 // min(am + P1, ap + P1) as min(am, ap) + P1: the same with saturation, as
                 // the saturating add is monotonic.
                 let best = _mm256_min_epi16(
@@ -355,19 +391,11 @@ unsafe fn pixel_narrow<const NP: usize, const HELD: usize, const INIT: bool>(
             };
             for (v, m) in mn.iter_mut().enumerate() {
                 let s = paths.src[v].add(at);
-                let (a, am, ap);
-                if v + 1 == NP {
-                    let hi = _mm256_loadu_si256(s.add(W).cast_const().cast());
-                    a = mid;
-                    am = _mm256_alignr_epi8::<15>(a, _mm256_permute2x128_si256::<0x21>(lo, a));
-                    ap = _mm256_alignr_epi8::<1>(_mm256_permute2x128_si256::<0x21>(a, hi), a);
-                    (lo, mid) = (a, hi);
+                let (a, am, ap) = if v + 1 == NP {
+                    along_row::<15, 1, _>(s, W, &mut lo, &mut mid)
                 } else {
-                    a = _mm256_loadu_si256(s.cast_const().cast());
-                    am = below[v];
-                    ap = _mm256_loadu_si256(s.add(1).cast_const().cast());
-                    below[v] = _mm256_loadu_si256(s.add(W - 1).cast_const().cast());
-                }
+                    from_row(s, W, &mut below[v])
+                };
                 let best = _mm256_min_epu8(
                     _mm256_min_epu8(a, paths.jump[v]),
                     _mm256_adds_epu8(_mm256_min_epu8(am, ap), p1),
