@@ -274,6 +274,21 @@ fn the_fast_path_gives_exactly_the_reference_output() {
             uniqueness_pct: 0,
             ..SgmParams::default()
         },
+        // u8 lanes (C_max + P2 <= 255) with a negative range start, adaptive P2 and 4 paths.
+        SgmParams {
+            min_disparity: -5,
+            max_disparity: 40,
+            p2_adaptive: true,
+            paths: 4,
+            ..SgmParams::default()
+        },
+        // The largest P2 that still fits u8 lanes (62 + 193 = 255), with a strong margin.
+        SgmParams {
+            p2: 193,
+            max_disparity: 70,
+            uniqueness_pct: 30,
+            ..SgmParams::default()
+        },
     ];
     for (i, p) in cases.iter().enumerate() {
         let (cw, ch) = (p.census_width as usize, p.census_height as usize);
