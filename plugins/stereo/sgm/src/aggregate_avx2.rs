@@ -37,6 +37,9 @@ pub(crate) fn pass(
     }
 }
 
+/// Pixels ahead whose incoming sums are prefetched.
+const PREFETCH: usize = 2;
+
 /// The pass with the paths in lanes of kind `K`, monomorphised by the number of paths, the
 /// held-back path (by direction) and whether sums come in.
 #[target_feature(enable = "avx2,popcnt")]
@@ -472,6 +475,7 @@ fn pass_n<K: Kind, const NV: usize, const NP: usize, const HELD: usize, const IN
     let unknown = ctx.p.unknown_cost();
     // The lanes from D to D' of the last chunk read the largest cost, so they never win.
     let pads = Pads::new(ctx, K::LANES);
+    let loads_costs = matches!(costs, Costs::Load(_));
     let p1 = K::splat(ctx.p.p1 as i16);
     let table = ctx.p2_table();
     ps.p2_row.clear();
@@ -584,6 +588,21 @@ fn pass_n<K: Kind, const NV: usize, const NP: usize, const HELD: usize, const IN
                 pp.dst[NV] = pp.src[NV];
                 pp.jump[NV] = K::splat(jump_h);
                 pp.min_prev[NV] = K::splat(row_min);
+                if INIT && j + PREFETCH < w {
+                    // The other pass's sums and the kept costs come from memory, against the
+                    // address order in the backward pass: ask for a later pixel's cells now.
+                    let xa = if forward { x + PREFETCH } else { x - PREFETCH };
+                    let cell = init_row.wrapping_add(xa * dp).cast::<i8>();
+                    for line in (0..2 * dp).step_by(64) {
+                        _mm_prefetch::<_MM_HINT_T0>(cell.wrapping_add(line));
+                    }
+                    if loads_costs {
+                        let cell = cost_row.wrapping_add(xa * dp).cast::<i8>();
+                        for line in (0..dp).step_by(64) {
+                            _mm_prefetch::<_MM_HINT_T0>(cell.wrapping_add(line));
+                        }
+                    }
+                }
                 let new_mins = K::pixel::<NP, HELD, INIT>(
                     chunks,
                     cost_row.add(x * dp),
