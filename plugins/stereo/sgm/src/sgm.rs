@@ -5,17 +5,19 @@
 //!
 //! The fast path aggregates in two passes, as OpenCV's full-size mode does: a forward pass
 //! (top-down, left to right) runs the paths that come from above and from the left, a backward
-//! pass the other half. Each pass computes the Hamming costs of one row at a time from the census
-//! images (no cost volume), keeps only the previous row of each path, and handles 16 disparities
-//! per step in i16 lanes (AVX2 when the CPU has it, chosen at run time; SSE2 otherwise). Only the
-//! forward pass's sums are stored (H x W x D' i16, D' = D rounded up to 16); the backward pass adds
-//! its own and selects the disparities of each row as it completes. With two or more threads the
-//! passes run side by side into two sum buffers. The result is bit-identical to the one-pass-per-
-//! direction transcription in [`crate::reference`] (tested).
+//! pass the other half. Each keeps only the previous row of each path and handles 16 disparities
+//! per step in i16 lanes, or 32 in u8 lanes when every L fits a byte (AVX2 when the CPU has it,
+//! chosen at run time; SSE2 otherwise). On one thread the forward pass computes the Hamming costs
+//! row by row and keeps them (H x W x D' u8) with its sums (H x W x D' i16, D' = D rounded up to
+//! 16 or 32); the backward pass reads both, adds its own sums and selects the disparities of each
+//! row as it completes. With two or more threads the passes run side by side, each computing its
+//! costs: whichever completes a row first publishes its sums, the other adds them to its own and
+//! selects the row. The result is bit-identical to the one-pass-per-direction transcription in
+//! [`crate::reference`] (tested, on one and two threads).
 //!
 //! Memory: the sums and the census images live in a [`Scratch`] the caller reuses across frames.
 
-use rayon::prelude::*;
+use std::sync::atomic::{AtomicU8, Ordering};
 
 pub use crate::aggregate::path_step;
 use crate::aggregate::{pass, Costs, Ctx, PassScratch, LANES};
@@ -170,9 +172,12 @@ pub struct Scratch {
     pass_b: PassScratch,
     /// Right-image disparities for the left-right check.
     right: Vec<f32>,
-    /// One row of sums for the backward pass when it selects as it goes.
+    /// One row of sums for the backward pass when it selects as it goes (and for the forward
+    /// pass with two threads; `row_b` the backward pass's then).
     row: Vec<i16>,
+    row_b: Vec<i16>,
     right_scratch: RightScratch,
+    right_scratch_b: RightScratch,
     /// Matching costs kept by the forward pass for the backward one (one thread).
     cost_vol: Vec<u8>,
     speckle: SpeckleScratch,
@@ -184,10 +189,11 @@ pub struct Scratch {
 pub struct SgmTiming {
     /// Census transform of both images.
     pub census_ms: f64,
-    /// The forward aggregation pass (with two threads: both passes, side by side).
+    /// The forward aggregation pass (with two threads: both passes side by side, each
+    /// selecting the rows it completes second).
     pub forward_ms: f64,
     /// The backward pass and the winner selection of each row as it completes (with two
-    /// threads: the selection alone).
+    /// threads: nothing left, about 0).
     pub backward_select_ms: f64,
     /// Left-right check, median and speckle removal.
     pub finish_ms: f64,
@@ -246,7 +252,9 @@ pub fn sgm(
         pass_b,
         right: right_disp,
         row,
+        row_b,
         right_scratch,
+        right_scratch_b,
         cost_vol,
         speckle,
         timing,
@@ -283,31 +291,67 @@ pub fn sgm(
     timing.census_ms = ms(t0);
     let t1 = std::time::Instant::now();
     if rayon::current_num_threads() > 1 {
-        // Both passes at once, then the selection row by row in parallel.
+        // Both passes at once, each into a row buffer. Whichever pass completes a row first
+        // publishes its sums there; the second adds them to its own and selects the row at
+        // once, while its sums are in the cache. So about half of each pass's rows go through
+        // memory, and the selection runs inside the passes, on both threads.
         sum_b.resize(plane, 0);
+        row.resize(w * dp, 0);
+        row_b.resize(w * dp, 0);
+        let published: Vec<AtomicU8> = (0..h).map(|_| AtomicU8::new(0)).collect();
+        let vol_f = SharedRows::new(&mut sum_f[..], w * dp);
+        let vol_b = SharedRows::new(&mut sum_b[..], w * dp);
+        let out = SharedRows::new(&mut disp[..], w);
+        let out_r = SharedRows::new(&mut right_disp[..], w);
+        let (ctx, published) = (&ctx, &published);
+        let finish_row = |mine: &SharedRows<i16>,
+                          other: &SharedRows<i16>,
+                          tot: &mut Vec<i16>,
+                          rs: &mut RightScratch,
+                          y: usize,
+                          sums: &mut [i16]| {
+            // SAFETY: row y of `other` is written by the other pass before it increments
+            // `published[y]` (release) and read here only after that increment was seen
+            // (acquire); row y of `mine` is written only by this pass, before its increment.
+            // The output rows y are written by whichever pass sees the other's increment, one
+            // of the two.
+            unsafe {
+                if published[y].load(Ordering::Acquire) == 0 {
+                    mine.row_mut(y).copy_from_slice(sums);
+                    if published[y].fetch_add(1, Ordering::AcqRel) == 0 {
+                        return;
+                    }
+                }
+                tot.clear();
+                tot.extend(
+                    sums.iter()
+                        .zip(other.row(y))
+                        .map(|(a, b)| a.saturating_add(*b)),
+                );
+                select_row(ctx, y, tot, valid, out.row_mut(y), out_r.row_mut(y), rs);
+            }
+        };
+        let (rs_a, rs_b) = (right_scratch, right_scratch_b);
+        let (mut tot_a, mut tot_b) = (Vec::new(), Vec::new());
         rayon::join(
-            || pass(true, &ctx, pass_f, None, Costs::Compute, sum_f, |_, _| {}),
-            || pass(false, &ctx, pass_b, None, Costs::Compute, sum_b, |_, _| {}),
+            || {
+                pass(true, ctx, pass_f, None, Costs::Compute, row, |y, sums| {
+                    finish_row(&vol_f, &vol_b, &mut tot_a, rs_a, y, sums)
+                })
+            },
+            || {
+                pass(
+                    false,
+                    ctx,
+                    pass_b,
+                    None,
+                    Costs::Compute,
+                    row_b,
+                    |y, sums| finish_row(&vol_b, &vol_f, &mut tot_b, rs_b, y, sums),
+                )
+            },
         );
         timing.forward_ms = ms(t1);
-        let (sf, sb) = (&*sum_f, &*sum_b);
-        disp.par_chunks_mut(w)
-            .zip(right_disp.par_chunks_mut(w))
-            .enumerate()
-            .for_each_init(
-                || (Vec::new(), RightScratch::default()),
-                |(tot, rs), (y, (dl, dr))| {
-                    let r = y * w * dp..(y + 1) * w * dp;
-                    tot.clear();
-                    tot.extend(
-                        sf[r.clone()]
-                            .iter()
-                            .zip(&sb[r])
-                            .map(|(a, b)| a.saturating_add(*b)),
-                    );
-                    select_row(&ctx, y, tot, valid, dl, dr, rs);
-                },
-            );
     } else {
         sum_b.clear();
         cost_vol.resize(h * w * dp, 0);
@@ -335,4 +379,43 @@ pub fn sgm(
     timing.finish_ms = ms(t2);
     timing.total_ms = ms(t0);
     Ok(disp)
+}
+
+/// Rows of a buffer shared by the two passes (see [`sgm`]): each row is written by one thread
+/// and read by the other only after an atomic hand-over, which the callers make.
+struct SharedRows<T> {
+    ptr: *mut T,
+    rows: usize,
+    len: usize,
+}
+
+// SAFETY: the rows are only accessed through the unsafe methods, whose callers order the
+// accesses (one writer per row, readers after a release/acquire hand-over).
+unsafe impl<T: Send> Sync for SharedRows<T> {}
+
+impl<T> SharedRows<T> {
+    fn new(buf: &mut [T], len: usize) -> Self {
+        SharedRows {
+            ptr: buf.as_mut_ptr(),
+            rows: buf.len() / len.max(1),
+            len,
+        }
+    }
+
+    /// # Safety
+    /// No other thread writes row `y` meanwhile.
+    unsafe fn row(&self, y: usize) -> &[T] {
+        assert!(y < self.rows);
+        // SAFETY: y < rows, so the row lies in the buffer; the caller excludes writers.
+        unsafe { std::slice::from_raw_parts(self.ptr.add(y * self.len), self.len) }
+    }
+
+    /// # Safety
+    /// No other thread reads or writes row `y` meanwhile.
+    #[allow(clippy::mut_from_ref)]
+    unsafe fn row_mut(&self, y: usize) -> &mut [T] {
+        assert!(y < self.rows);
+        // SAFETY: as above, and the caller excludes every other access.
+        unsafe { std::slice::from_raw_parts_mut(self.ptr.add(y * self.len), self.len) }
+    }
 }

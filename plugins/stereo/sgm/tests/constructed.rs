@@ -385,3 +385,29 @@ fn p2_beyond_the_lane_bound_a_huge_uniqueness_and_a_wrong_mask_are_refused() {
     .unwrap_err();
     assert!(e.contains("mask"), "{e}");
 }
+
+#[test]
+fn two_threads_hand_rows_over_and_give_the_one_thread_output() {
+    // Large enough that the two passes meet in the middle while both run; repeated, so
+    // different interleavings of the row hand-over occur.
+    let (w, h) = (240, 160);
+    let left = dots(w, h, 21);
+    let right = shift(&left, w, h, |x, y| 4 + (x + 3 * y) / 40, &dots(w, h, 22));
+    for p in [
+        SgmParams::default(),
+        SgmParams {
+            p2: 400,
+            max_disparity: 48,
+            ..SgmParams::default()
+        },
+    ] {
+        let one = on_threads(1, || {
+            sgm(&left, &right, w, h, None, &p, &mut Scratch::default()).unwrap()
+        });
+        let mut s = Scratch::default();
+        for run in 0..6 {
+            let two = on_threads(2, || sgm(&left, &right, w, h, None, &p, &mut s).unwrap());
+            assert_eq!(same(&two, &one), 0, "run {run}, p2 {}", p.p2);
+        }
+    }
+}
