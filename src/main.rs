@@ -8,6 +8,22 @@ use clap::{Parser, Subcommand};
 use misslam_framework::recorder::{Recorder, RerunMode};
 use misslam_framework::{graph, RunOptions, Runtime};
 
+/// `println!` that ends the process quietly (exit status 0) when the reader of stdout has gone
+/// (`misslam plugins | head`), as Unix tools do, instead of panicking; any other failure to write
+/// is reported on stderr with exit status 1, so no output is lost silently.
+macro_rules! out {
+    ($($t:tt)*) => {{
+        use std::io::Write as _;
+        if let Err(e) = writeln!(std::io::stdout(), $($t)*) {
+            if e.kind() == std::io::ErrorKind::BrokenPipe {
+                std::process::exit(0);
+            }
+            eprintln!("error: writing to stdout: {e}");
+            std::process::exit(1);
+        }
+    }};
+}
+
 #[derive(Parser)]
 #[command(
     name = "misslam",
@@ -348,12 +364,16 @@ fn run(command: Command) -> anyhow::Result<()> {
             which: BenchCommand::Phantom { frames, out },
         } => {
             let rows = misslam::bench::phantom(frames).map_err(anyhow::Error::msg)?;
-            println!(
+            out!(
                 "{:<8} {:>9} {:>7} {:>10} {:>8}",
-                "scene", "size", "frames", "ms/frame", "fps"
+                "scene",
+                "size",
+                "frames",
+                "ms/frame",
+                "fps"
             );
             for r in &rows {
-                println!(
+                out!(
                     "{:<8} {:>9} {:>7} {:>10.1} {:>8.1}",
                     r.scene,
                     format!("{}x{}", r.width, r.height),
@@ -387,7 +407,7 @@ fn run(command: Command) -> anyhow::Result<()> {
                 ..Default::default()
             };
             let rows = misslam::bench::ed_scaling(&p).map_err(anyhow::Error::msg)?;
-            println!(
+            out!(
                 "{:>5} {:>7} {:>7} {:>8} {:>9} {:>4} {:>9} {:>9} {:>9} {:>8} {:>9} {:>9} {:>9}",
                 "frame",
                 "nodes",
@@ -404,7 +424,7 @@ fn run(command: Command) -> anyhow::Result<()> {
                 "seen mm"
             );
             for r in &rows {
-                println!(
+                out!(
                     "{:>5} {:>7} {:>7} {:>8} {:>9.1} {:>4} {:>9.1} {:>9.3} {:>9.3} {:>8} {:>9.1} {:>9.3} {:>9.3}",
                     r.frame,
                     r.total_nodes,
@@ -448,11 +468,11 @@ fn run(command: Command) -> anyhow::Result<()> {
             let r = misslam::bench::sgm_cpu(pair, (width, height), &p, repeat)
                 .map_err(anyhow::Error::msg)?;
             let s = &r.stages_ms;
-            println!(
+            out!(
                 "SGM {}x{}, {} disparities, {} paths, {} threads: {:.1} ms per pair (median of {}, fastest {:.1}); density {:.1} %",
                 r.width, r.height, r.disparities, r.paths, r.threads, r.ms, r.runs, r.min_ms, r.density_pct
             );
-            println!(
+            out!(
                 "stages: census {:.2}, forward {:.2}, backward + select {:.2}, finish {:.2}, total {:.2} ms",
                 s.census_ms, s.forward_ms, s.backward_select_ms, s.finish_ms, s.total_ms
             );
@@ -483,20 +503,24 @@ fn run(command: Command) -> anyhow::Result<()> {
             let r = misslam::bench::sgm_gpu(pair, (width, height), &p, repeat)
                 .map_err(anyhow::Error::msg)?;
             let s = &r.stages_ms;
-            println!(
+            out!(
                 "SGM {}x{}, {} disparities, {} paths on {}",
-                r.width, r.height, r.disparities, r.paths, r.adapter
+                r.width,
+                r.height,
+                r.disparities,
+                r.paths,
+                r.adapter
             );
-            println!(
+            out!(
                 "GPU {:.3} ms per pair (median of {}, fastest {:.3}); CPU ({} threads) {:.1} ms: {:.1}x",
                 r.gpu_ms, r.runs, r.gpu_min_ms, r.cpu_threads, r.cpu_ms, r.speedup
             );
-            println!(
+            out!(
                 "stages ({}): upload {:.3}, census {:.3}, aggregate {:.3}, select {:.3}, median {:.3}, readback {:.3}, speckles {:.3}, total {:.3} ms",
                 if s.gpu_timestamps { "GPU timestamps" } else { "each waited for" },
                 s.upload_ms, s.census_ms, s.aggregate_ms, s.select_ms, s.median_ms, s.readback_ms, s.speckle_ms, s.total_ms
             );
-            println!(
+            out!(
                 "parity with the CPU: {} pixels differ in validity, max |diff| {:.2e} px; density {:.1} %",
                 r.validity_differs, r.max_abs_diff_px, r.density_pct
             );
@@ -526,7 +550,7 @@ fn run(command: Command) -> anyhow::Result<()> {
             p.subpixel = subpixel;
             let r = misslam::bench::elas(&left, &right, &p, repeat).map_err(anyhow::Error::msg)?;
             let s = r.steps_ms;
-            println!(
+            out!(
                 "ELAS {preset} {}x{}, disp_max {disp_max}: {:.1} ms (median of {repeat}); descriptors {:.1}, support {:.1} ({} points), triangulation {:.1}, dense {:.1}, postprocess {:.1}",
                 r.width, r.height, r.ms, s[0], s[1], r.support_points, s[2], s[3], s[4]
             );
@@ -557,7 +581,7 @@ fn run(command: Command) -> anyhow::Result<()> {
             if detector == "surf" {
                 let (n, ms) =
                     misslam::bench::surf(&image, n_features, repeat).map_err(anyhow::Error::msg)?;
-                println!("SURF: {n} keypoints, detect+describe {ms:.2} ms (median of {repeat}, 1 thread)");
+                out!("SURF: {n} keypoints, detect+describe {ms:.2} ms (median of {repeat}, 1 thread)");
                 if let Some(path) = out {
                     let v = serde_json::json!({ "keypoints": n, "surf_ms": ms });
                     write_json(&path, &v)?;
@@ -577,12 +601,15 @@ fn run(command: Command) -> anyhow::Result<()> {
                 repeat,
             )
             .map_err(anyhow::Error::msg)?;
-            println!(
+            out!(
                 "ORB {}x{}: {} keypoints, detect+describe {:.2} ms (median of {repeat}, 1 thread)",
-                r.width, r.height, r.keypoints, r.orb_ms
+                r.width,
+                r.height,
+                r.keypoints,
+                r.orb_ms
             );
             if let Some(ms) = r.knn_ms {
-                println!(
+                out!(
                     "Hamming 2-NN {} x {}: {:.2} ms; {} matches (ratio 0.8, cross-check)",
                     r.keypoints,
                     r.keypoints2,
@@ -602,12 +629,18 @@ fn run(command: Command) -> anyhow::Result<()> {
             let rows = misslam::bench::runtime_overhead(nodes, frames, &dir)
                 .map_err(anyhow::Error::msg)?;
             let _ = std::fs::remove_dir_all(&dir);
-            println!(
+            out!(
                 "{:<6} {:>6} {:>8} {:>9} {:>11} {:>13} {:>10}",
-                "shape", "nodes", "frames", "parallel", "frame us", "us/node/frame", "x budget"
+                "shape",
+                "nodes",
+                "frames",
+                "parallel",
+                "frame us",
+                "us/node/frame",
+                "x budget"
             );
             for r in &rows {
-                println!(
+                out!(
                     "{:<6} {:>6} {:>8} {:>9} {:>11.2} {:>13.3} {:>10.4}",
                     r.shape,
                     r.nodes,
@@ -627,10 +660,10 @@ fn run(command: Command) -> anyhow::Result<()> {
             which: EvalCommand::Recon { est, gt },
         } => {
             let s = misslam::eval_cli::eval_recon(&est, &gt).map_err(anyhow::Error::msg)?;
-            println!("points           {}", s.points);
-            println!("recon.mean_mm    {:.4}", s.mean_mm);
-            println!("recon.rms_mm     {:.4}", s.rms_mm);
-            println!("recon.p95_mm     {:.4}", s.p95_mm);
+            out!("points           {}", s.points);
+            out!("recon.mean_mm    {:.4}", s.mean_mm);
+            out!("recon.rms_mm     {:.4}", s.rms_mm);
+            out!("recon.p95_mm     {:.4}", s.p95_mm);
             Ok(())
         }
         Command::Eval {
@@ -649,11 +682,11 @@ fn run(command: Command) -> anyhow::Result<()> {
             };
             let s =
                 misslam::eval_cli::eval_tracking(&est, &gt, align).map_err(anyhow::Error::msg)?;
-            println!("frames with a pose  {}", s.frames);
-            println!("tracking.ate_mm     {:.4}", s.ate_mm);
-            println!("tracking.rpe_mm     {:.4}", s.rpe_mm);
-            println!("tracking.rpe_deg    {:.4}", s.rpe_deg);
-            println!("tracking.lost_pct   {:.2}", s.lost_pct);
+            out!("frames with a pose  {}", s.frames);
+            out!("tracking.ate_mm     {:.4}", s.ate_mm);
+            out!("tracking.rpe_mm     {:.4}", s.rpe_mm);
+            out!("tracking.rpe_deg    {:.4}", s.rpe_deg);
+            out!("tracking.lost_pct   {:.2}", s.lost_pct);
             if let Some(path) = out {
                 let v = serde_json::json!({
                     "frames": s.frames,
@@ -691,19 +724,29 @@ fn run(command: Command) -> anyhow::Result<()> {
             };
             let rows = misslam::eval_cli::eval_depth(&est, &dataset, format, &params)
                 .map_err(anyhow::Error::msg)?;
-            println!(
+            out!(
                 "{:>6} {:>8} {:>8} {:>8} {:>9} {:>9}",
-                "frame", "bad1 %", "bad2 %", "bad2v %", "MAE mm", "density %"
+                "frame",
+                "bad1 %",
+                "bad2 %",
+                "bad2v %",
+                "MAE mm",
+                "density %"
             );
             for r in &rows {
-                println!(
+                out!(
                     "{:>6} {:>8.2} {:>8.2} {:>8.2} {:>9.3} {:>9.1}",
-                    r.frame, r.bad1_pct, r.bad2_pct, r.bad2_valid_pct, r.mae_mm, r.density_pct
+                    r.frame,
+                    r.bad1_pct,
+                    r.bad2_pct,
+                    r.bad2_valid_pct,
+                    r.mae_mm,
+                    r.density_pct
                 );
             }
             let summary = misslam::eval_cli::summary(&rows);
             for (k, v) in &summary {
-                println!("{k:<22} {v:.4}");
+                out!("{k:<22} {v:.4}");
             }
             if let Some(path) = out {
                 let json = serde_json::json!({ "frames": rows, "eval": summary });
@@ -749,7 +792,7 @@ fn run(command: Command) -> anyhow::Result<()> {
         Command::Plugins { id: None, .. } => {
             for p in registry.iter() {
                 let info = p.info();
-                println!("{:<24} {}", info.id, info.summary);
+                out!("{:<24} {}", info.id, info.summary);
             }
             Ok(())
         }
@@ -763,7 +806,7 @@ fn run(command: Command) -> anyhow::Result<()> {
         }
         Command::Validate { graph: path, set } => {
             let g = graph::load(&path, &registry, &set)?;
-            println!(
+            out!(
                 "{}: ok ({} nodes in {} levels)",
                 path.display(),
                 g.nodes.len(),

@@ -312,3 +312,32 @@ fn sgm_bench_reports_its_stages_and_names_a_pair_that_does_not_fit() {
         "{err}"
     );
 }
+
+#[test]
+fn a_closed_or_full_stdout_ends_the_command_without_a_panic() {
+    use std::process::Stdio;
+    // The reader goes away before the first line (as `| head -0` would): exit 0, no panic.
+    let mut child = misslam()
+        .args([
+            "bench", "sgm", "--width", "64", "--height", "32", "--repeat", "1",
+        ])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+    // A write that fails otherwise (a full device) is an error naming stdout.
+    if let Ok(full) = std::fs::OpenOptions::new().write(true).open("/dev/full") {
+        let out = misslam().arg("plugins").stdout(full).output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{err}");
+        assert!(err.contains("writing to stdout"), "{err}");
+        assert!(!err.contains("panicked"), "{err}");
+    } else {
+        println!("skipped the full-device case: no /dev/full");
+    }
+}
