@@ -1,12 +1,15 @@
 //! The aggregation pass of [`crate::aggregate`] in AVX2 registers: the same recurrence and the
-//! same sums, with all the paths of a pixel advanced together, 16 disparities at a time. Per
-//! chunk the matching costs and the running sum are loaded once and stored once, and each path
-//! reads its previous L at d - 1, d and d + 1 by unaligned loads (no lane shuffles). The paths
-//! are updated in place in one row buffer, as in the portable pass (so the buffer stays in the
-//! L2 cache): the load of chunk q + 1 at d - 1 is made before chunk q is stored, and the path
-//! that would overwrite an L its right-hand neighbour still has to read holds its new L back a
-//! pixel. The Hamming costs of a row are computed 16 disparities at a time too (nibble-table
-//! popcounts, [`cost_row`]).
+//! same sums, with all the paths of a pixel advanced together, one register of disparities at a
+//! time. Per chunk the matching costs and the running sum are loaded once and stored once, and
+//! each path from the previous row reads its previous L at d - 1, d and d + 1 by unaligned loads
+//! (no lane shuffles). The paths are updated in place in one row buffer, as in the portable pass
+//! (so the buffer stays in the L2 cache): the load of chunk q + 1 at d - 1 is made before chunk
+//! q is stored, the path that would overwrite an L its right-hand neighbour still has to read
+//! holds its new L back a pixel, and the path along the row reads whole chunks and shifts lanes
+//! (an unaligned load of what the previous pixel has just stored would wait for the stores). The
+//! Hamming costs of a row are computed 16 disparities at a time (nibble-table popcounts,
+//! [`cost_row`]) and kept as bytes. The backward pass prefetches the sums and costs it reads, as
+//! it walks each row against the address order.
 //!
 //! Every L lies in 0..=C_max + P2 (C_max: the census bits). When that is at most 255 (the
 //! defaults: 62 + 120) the paths run in u8 lanes, 32 disparities per register, with saturating
