@@ -45,45 +45,26 @@ pub(crate) struct PassScratch {
 impl PassScratch {
     /// Sizes and resets the buffers for a pass with `nv` paths from the previous row.
     pub(crate) fn begin(&mut self, ctx: &Ctx, nv: usize) {
-        let (w, dp) = (ctx.w, ctx.dp);
-        self.paths.clear();
-        push_paths(&mut self.paths, nv * (w + 2), dp);
-        self.mins.clear();
-        self.mins.resize(nv * (w + 2), 0);
-        self.row_path.clear();
-        push_paths(&mut self.row_path, 1, dp);
-        self.held.clear();
-        self.held.resize(dp, 0);
-        self.holding.clear();
-        self.holding.resize(dp, 0);
+        self.begin_rows(ctx, nv);
+        let bufs = [
+            &mut self.paths,
+            &mut self.held,
+            &mut self.holding,
+            &mut self.row_path,
+        ];
+        size_paths(bufs, nv * (ctx.w + 2), ctx.dp, GUARD, FAR);
         self.cost.clear();
-        self.cost.resize(w * dp, FAR);
-        self.cost_u8.clear();
-        self.cost_u8.resize(w * dp, 0);
-        // LANES more at the end: the SIMD costs read whole chunks of candidates.
-        self.rev.clear();
-        self.rev.resize(w + 2 * ctx.rev_pad() + LANES, 0);
+        self.cost.resize(ctx.w * ctx.dp, FAR);
     }
 
-    /// Sizes and resets the u8 path buffers (narrow AVX2 pass): as [`Self::begin`] with guards
-    /// of 32 lanes at 255.
-    #[cfg(target_arch = "x86_64")]
-    pub(crate) fn begin_narrow(&mut self, ctx: &Ctx, nv: usize) {
-        let (w, dp) = (ctx.w, ctx.dp);
-        let push = |buf: &mut Vec<u8>, slots: usize| {
-            buf.clear();
-            for _ in 0..slots {
-                buf.extend(std::iter::repeat_n(255, 32));
-                buf.extend(std::iter::repeat_n(0, dp));
-            }
-            buf.extend(std::iter::repeat_n(255, 32));
-        };
-        push(&mut self.paths8, nv * (w + 2));
-        push(&mut self.row_path8, 1);
-        self.held8.clear();
-        self.held8.resize(dp, 0);
-        self.holding8.clear();
-        self.holding8.resize(dp, 0);
+    /// Sizes and resets what every pass uses whatever its lanes: the minima of the paths from
+    /// the previous row and the reversed right census row.
+    pub(crate) fn begin_rows(&mut self, ctx: &Ctx, nv: usize) {
+        self.mins.clear();
+        self.mins.resize(nv * (ctx.w + 2), 0);
+        // LANES more at the end: the SIMD costs read whole chunks of candidates.
+        self.rev.clear();
+        self.rev.resize(ctx.w + 2 * ctx.rev_pad() + LANES, 0);
     }
 
     /// Starts row `y`: its matching costs, and the path along the row from zero at the border
@@ -92,7 +73,7 @@ impl PassScratch {
     pub(crate) fn start_row(&mut self, ctx: &Ctx, y: usize, costs: &mut Costs) {
         self.row_costs(ctx, y, costs);
         self.row_path.clear();
-        push_paths(&mut self.row_path, 1, ctx.dp);
+        push_paths(&mut self.row_path, 1, ctx.dp, GUARD, FAR);
     }
 
     /// Ends a row: the last pixel's held-back L (path `v` of `nv`, minimum `held_min`) goes to
@@ -299,14 +280,34 @@ fn step(
     out
 }
 
-/// Appends `slots` path slots: GUARD lanes at FAR, then D' disparities at 0 (a path start:
+/// Appends `slots` path slots: `guard` lanes at `far`, then D' disparities at 0 (a path start:
 /// L = C), and a trailing guard.
-fn push_paths(buf: &mut Vec<i16>, slots: usize, dp: usize) {
+fn push_paths<T: Copy + Default>(buf: &mut Vec<T>, slots: usize, dp: usize, guard: usize, far: T) {
     for _ in 0..slots {
-        buf.extend(std::iter::repeat_n(FAR, GUARD));
-        buf.extend(std::iter::repeat_n(0, dp));
+        buf.extend(std::iter::repeat_n(far, guard));
+        buf.extend(std::iter::repeat_n(T::default(), dp));
     }
-    buf.extend(std::iter::repeat_n(FAR, GUARD));
+    buf.extend(std::iter::repeat_n(far, guard));
+}
+
+/// Sizes and resets one kind of path buffers, `[paths, held, holding, row path]`: `slots`
+/// guarded slots of the paths from the previous row, one of the path along the row, and D'
+/// zeros for the two held-back L.
+pub(crate) fn size_paths<T: Copy + Default>(
+    [paths, held, holding, row_path]: [&mut Vec<T>; 4],
+    slots: usize,
+    dp: usize,
+    guard: usize,
+    far: T,
+) {
+    paths.clear();
+    push_paths(paths, slots, dp, guard, far);
+    row_path.clear();
+    push_paths(row_path, 1, dp, guard, far);
+    for b in [held, holding] {
+        b.clear();
+        b.resize(dp, T::default());
+    }
 }
 
 /// The pass with `NV` paths from the previous row (3 with 8 paths, 1 with 4) and one along the

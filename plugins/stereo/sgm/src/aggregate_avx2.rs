@@ -18,7 +18,7 @@
 
 use std::arch::x86_64::*;
 
-use crate::aggregate::{Costs, Ctx, PassScratch, FAR, LANES};
+use crate::aggregate::{size_paths, Costs, Ctx, PassScratch, FAR, LANES};
 
 /// One pass (see [`crate::aggregate::pass`]). Only called after AVX2 and POPCNT were detected.
 #[target_feature(enable = "avx2,popcnt")]
@@ -70,14 +70,14 @@ fn kind<K: Kind>(
 /// The lane type of the paths: i16 ([`Wide`]) or u8 ([`Narrow`]).
 pub(crate) trait Kind {
     /// One L.
-    type E: Copy;
+    type E: Copy + Default;
     /// Lanes per register.
     const LANES: usize;
     /// The path buffers of this kind in the scratch: the rows of paths, held, holding and the
     /// path along the row.
     fn buffers(ps: &mut PassScratch) -> [&mut Vec<Self::E>; 4];
-    /// Sizes and resets the buffers (as [`PassScratch::begin`] for i16).
-    fn begin(ps: &mut PassScratch, ctx: &Ctx, nv: usize);
+    /// The guard lanes' value, above every L.
+    const FAR: Self::E;
     /// A value broadcast to every lane (at most 255 for u8: saturated).
     fn splat(v: i16) -> __m256i;
     /// [`pixel`] for this lane type.
@@ -141,9 +141,7 @@ impl Kind for Wide {
             &mut ps.row_path,
         ]
     }
-    fn begin(ps: &mut PassScratch, ctx: &Ctx, nv: usize) {
-        ps.begin(ctx, nv);
-    }
+    const FAR: i16 = FAR;
     fn splat(v: i16) -> __m256i {
         // SAFETY: a broadcast; AVX is present wherever this pass runs.
         unsafe { _mm256_set1_epi16(v) }
@@ -173,10 +171,7 @@ impl Kind for Narrow {
             &mut ps.row_path8,
         ]
     }
-    fn begin(ps: &mut PassScratch, ctx: &Ctx, nv: usize) {
-        ps.begin(ctx, nv);
-        ps.begin_narrow(ctx, nv);
-    }
+    const FAR: u8 = u8::MAX;
     fn splat(v: i16) -> __m256i {
         // SAFETY: a broadcast; AVX is present wherever this pass runs.
         unsafe { _mm256_set1_epi8(v.clamp(0, 255) as u8 as i8) }
@@ -461,8 +456,11 @@ fn pass_n<K: Kind, const NV: usize, const NP: usize, const HELD: usize, const IN
     let whole = out.len() == h * row_len;
     let init = if INIT { init } else { None };
     assert!(out.len() >= row_len && init.is_none_or(|s| s.len() >= h * row_len));
-    K::begin(ps, ctx, NV);
-    assert!(ps.mins.len() == NV * (w + 2) && ps.cost_u8.len() == row_len);
+    ps.begin_rows(ctx, NV);
+    ps.cost_u8.clear();
+    ps.cost_u8.resize(row_len, 0);
+    size_paths(K::buffers(ps), NV * (w + 2), dp, guard, K::FAR);
+    assert_eq!(ps.mins.len(), NV * (w + 2));
     let [paths_v, held_v, holding_v, row_v] = K::buffers(ps);
     assert_eq!(paths_v.len(), NV * (w + 2) * stride + guard);
     assert!(row_v.len() == stride + guard && held_v.len() == dp && holding_v.len() == dp);
