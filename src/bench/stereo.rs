@@ -1,0 +1,331 @@
+//! `misslam bench elas`, `sgm` and `sgm-gpu`: the stereo stages on a pair, step by step.
+
+use std::path::Path;
+use std::time::Instant;
+
+use super::{gray_image, median, median_ms};
+
+/// One ELAS run's figures ([`elas`]).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ElasBench {
+    /// Image width, px.
+    pub width: u32,
+    /// Image height, px.
+    pub height: u32,
+    /// Support points found.
+    pub support_points: usize,
+    /// Median total time, ms.
+    pub ms: f64,
+    /// Median time of each step, ms: descriptors, support, triangulation, dense, postprocess.
+    pub steps_ms: [f64; 5],
+    /// Left disparity of the last run (px, NaN invalid), row-major.
+    #[serde(skip)]
+    pub disparity: Vec<f32>,
+}
+
+/// ELAS on a pair (threads: as rayon is configured, e.g. `RAYON_NUM_THREADS=1`), with the time
+/// of each step (median of `repeat`).
+pub fn elas(
+    left: &Path,
+    right: &Path,
+    p: &misslam_depth_elas::ElasParams,
+    repeat: usize,
+) -> Result<ElasBench, String> {
+    let (w, h, l) = gray_image(left)?;
+    let (w2, h2, r) = gray_image(right)?;
+    if (w, h) != (w2, h2) {
+        return Err(format!(
+            "{} is {w}x{h} but {} is {w2}x{h2}",
+            left.display(),
+            right.display()
+        ));
+    }
+    let mut steps: Vec<[f64; 5]> = Vec::new();
+    let mut last = None;
+    let mut scratch = misslam_depth_elas::Scratch::default();
+    let ms = median_ms(repeat, || {
+        let o = misslam_depth_elas::elas_with(&l, &r, w as usize, h as usize, p, &mut scratch)?;
+        let t = o.timing;
+        steps.push([
+            t.descriptors,
+            t.support,
+            t.triangulation,
+            t.dense,
+            t.postprocess,
+        ]);
+        last = Some(o);
+        Ok::<(), String>(())
+    })?;
+    let o = last.ok_or("no run")?;
+    let steps_ms = std::array::from_fn(|k| median(steps.iter().map(|s| s[k]).collect()));
+    Ok(ElasBench {
+        width: w,
+        height: h,
+        support_points: o.support.len(),
+        ms,
+        steps_ms,
+        disparity: o.left,
+    })
+}
+
+/// `misslam bench sgm`: the CPU SGM on one pair, the median of each stage ([`sgm_cpu`]).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct SgmCpuBench {
+    /// Image width, px.
+    pub width: usize,
+    /// Image height, px.
+    pub height: usize,
+    /// Disparities searched.
+    pub disparities: u32,
+    /// Paths (4 or 8).
+    pub paths: u32,
+    /// Rayon's threads.
+    pub threads: usize,
+    /// Timed runs (after one warm-up run).
+    pub runs: usize,
+    /// Median wall time of one pair, ms.
+    pub ms: f64,
+    /// Fastest of the same runs, ms.
+    pub min_ms: f64,
+    /// Median of each stage over the same runs, ms.
+    pub stages_ms: misslam_depth_sgm::sgm::SgmTiming,
+    /// Valid pixels of the output, % of all.
+    pub density_pct: f64,
+}
+
+/// Loads a gray pair (or makes the random-dot pair of `size`), checking that the sizes agree.
+fn sgm_pair(
+    pair: Option<(&Path, &Path)>,
+    size: (usize, usize),
+    nd: u32,
+) -> Result<(usize, usize, Vec<u8>, Vec<u8>), String> {
+    match pair {
+        Some((l, r)) => {
+            let (w, h, left) = gray_image(l)?;
+            let (w2, h2, right) = gray_image(r)?;
+            if (w, h) != (w2, h2) {
+                return Err(format!(
+                    "{} is {w}x{h} but {} is {w2}x{h2}",
+                    l.display(),
+                    r.display()
+                ));
+            }
+            Ok((w as usize, h as usize, left, right))
+        }
+        None => {
+            let (l, r) = random_dot_pair(size.0, size.1, nd);
+            Ok((size.0, size.1, l, r))
+        }
+    }
+}
+
+/// The CPU SGM ([`misslam_depth_sgm::sgm::sgm`]) on a pair, with the threads rayon has: the
+/// median time per pair and of each stage over `repeat` runs after a warm-up run.
+pub fn sgm_cpu(
+    pair: Option<(&Path, &Path)>,
+    size: (usize, usize),
+    p: &misslam_depth_sgm::sgm::SgmParams,
+    repeat: usize,
+) -> Result<SgmCpuBench, String> {
+    use misslam_depth_sgm::sgm::{sgm, Scratch, SgmTiming};
+    let (w, h, left, right) = sgm_pair(pair, size, p.max_disparity)?;
+    let mut scratch = Scratch::default();
+    let mut out = sgm(&left, &right, w, h, None, p, &mut scratch)?;
+    let mut stages: Vec<SgmTiming> = Vec::new();
+    let mut totals = Vec::new();
+    let ms = median_ms(repeat, || {
+        let t = Instant::now();
+        out = sgm(&left, &right, w, h, None, p, &mut scratch)?;
+        totals.push(t.elapsed().as_secs_f64() * 1e3);
+        stages.push(scratch.last_timing());
+        Ok::<(), String>(())
+    })?;
+    let med = |f: &dyn Fn(&SgmTiming) -> f64| median(stages.iter().map(f).collect());
+    let stages_ms = SgmTiming {
+        census_ms: med(&|t| t.census_ms),
+        forward_ms: med(&|t| t.forward_ms),
+        backward_select_ms: med(&|t| t.backward_select_ms),
+        finish_ms: med(&|t| t.finish_ms),
+        total_ms: med(&|t| t.total_ms),
+    };
+    let valid = out.iter().filter(|v| v.is_finite()).count();
+    Ok(SgmCpuBench {
+        width: w,
+        height: h,
+        disparities: p.max_disparity,
+        paths: p.paths,
+        threads: rayon::current_num_threads(),
+        runs: repeat.max(1),
+        ms,
+        min_ms: totals.iter().copied().fold(f64::INFINITY, f64::min),
+        stages_ms,
+        density_pct: 100.0 * valid as f64 / (w * h) as f64,
+    })
+}
+
+/// `misslam bench sgm-gpu`: the WGSL SGM against the CPU path on the same pair in the same run
+/// ([`sgm_gpu`]).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct SgmGpuBench {
+    /// The adapter (name, backend, type).
+    pub adapter: String,
+    /// Image width, px.
+    pub width: usize,
+    /// Image height, px.
+    pub height: usize,
+    /// Disparities searched.
+    pub disparities: u32,
+    /// Paths (4 or 8).
+    pub paths: u32,
+    /// Timed runs (after one warm-up run).
+    pub runs: usize,
+    /// Median wall time of one pair on the GPU, upload, every kernel, readback and the CPU's
+    /// speckle removal included (no wait between the stages), ms.
+    pub gpu_ms: f64,
+    /// Fastest of the same runs, ms.
+    pub gpu_min_ms: f64,
+    /// Median of each stage, ms: from GPU timestamps over the same runs where the adapter has
+    /// them, else over separate runs in which every stage is waited for (so their sum is above
+    /// `gpu_ms`).
+    pub stages_ms: misslam_depth_sgm::gpu::SgmGpuTiming,
+    /// Median wall time of the CPU path ([`misslam_depth_sgm::sgm::sgm`]) on the same pair, with
+    /// the threads rayon has, ms.
+    pub cpu_ms: f64,
+    /// Rayon's threads for the CPU runs.
+    pub cpu_threads: usize,
+    /// `cpu_ms / gpu_ms`.
+    pub speedup: f64,
+    /// Pixels whose validity differs between the GPU and the CPU output.
+    pub validity_differs: usize,
+    /// Largest |GPU - CPU| over pixels valid in both, px.
+    pub max_abs_diff_px: f32,
+    /// Valid pixels of the CPU output, % of all.
+    pub density_pct: f64,
+}
+
+/// How two disparity maps (NaN invalid) differ: the pixels valid in one and not the other, and
+/// the largest |a - b| over pixels valid in both.
+pub fn disparity_parity(a: &[f32], b: &[f32]) -> (usize, f32) {
+    let validity = a
+        .iter()
+        .zip(b)
+        .filter(|(x, y)| x.is_finite() != y.is_finite())
+        .count();
+    let max_diff = a
+        .iter()
+        .zip(b)
+        .filter(|(x, y)| x.is_finite() && y.is_finite())
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0f32, f32::max);
+    (validity, max_diff)
+}
+
+/// A rectified random-dot pair of `w` x `h` with a slanted background and a nearer block (so
+/// there are occlusions), disparities within 0..`nd`.
+pub fn random_dot_pair(w: usize, h: usize, nd: u32) -> (Vec<u8>, Vec<u8>) {
+    let mut s = 0x9e37_79b9_7f4a_7c15u64 ^ (w * 31 + h) as u64;
+    let mut next = move || {
+        s ^= s << 13;
+        s ^= s >> 7;
+        s ^= s << 17;
+        (s >> 24) as u8
+    };
+    let left: Vec<u8> = (0..w * h).map(|_| next()).collect();
+    let mut right: Vec<u8> = (0..w * h).map(|_| next()).collect();
+    let top = (nd.max(4) - 2) as usize;
+    let disp = |x: usize, y: usize| {
+        if (w / 3..w / 2).contains(&x) && (h / 4..h / 2).contains(&y) {
+            top
+        } else {
+            2 + (x + 2 * y) * (top / 2) / (w + 2 * h)
+        }
+    };
+    let mut order: Vec<(usize, usize)> = (0..h).flat_map(|y| (0..w).map(move |x| (x, y))).collect();
+    order.sort_by_key(|&(x, y)| disp(x, y));
+    for (x, y) in order {
+        let d = disp(x, y);
+        if x >= d {
+            right[y * w + x - d] = left[y * w + x];
+        }
+    }
+    (left, right)
+}
+
+/// SGM on the GPU and on the CPU on one pair (the files, or [`random_dot_pair`] at `size`):
+/// median times, the GPU's stage breakdown and the parity of the two outputs.
+pub fn sgm_gpu(
+    pair: Option<(&Path, &Path)>,
+    size: (usize, usize),
+    p: &misslam_depth_sgm::sgm::SgmParams,
+    repeat: usize,
+) -> Result<SgmGpuBench, String> {
+    use misslam_depth_sgm::gpu::{SgmGpu, SgmGpuTiming};
+    use misslam_depth_sgm::sgm::{sgm, Scratch};
+    let (w, h, left, right) = sgm_pair(pair, size, p.max_disparity)?;
+    let ctx = misslam_framework::gpu::GpuProvider::new()
+        .get()
+        .map_err(|e| e.to_string())?;
+    let info = &ctx.adapter_info;
+    let adapter = format!("{} ({:?}, {:?})", info.name, info.backend, info.device_type);
+    let mut kernels = SgmGpu::new(&ctx);
+    let run = |k: &mut SgmGpu| k.run(&ctx, &left, &right, w, h, None, p);
+    let (got, _) = run(&mut kernels)?;
+    let mut totals = Vec::new();
+    let mut gpu_out = got;
+    let mut stages: Vec<SgmGpuTiming> = Vec::new();
+    let gpu_ms = median_ms(repeat, || {
+        let t = Instant::now();
+        let (d, timing) = run(&mut kernels)?;
+        totals.push(t.elapsed().as_secs_f64() * 1e3);
+        gpu_out = d;
+        stages.push(timing);
+        Ok::<(), String>(())
+    })?;
+    let gpu_min_ms = totals.iter().copied().fold(f64::INFINITY, f64::min);
+    if !stages.iter().all(|t| t.gpu_timestamps) {
+        // No timestamps: time each stage on its own.
+        kernels.set_staged(true);
+        stages.clear();
+        for _ in 0..repeat.max(1) {
+            stages.push(run(&mut kernels)?.1);
+        }
+        kernels.set_staged(false);
+    }
+    let med = |f: &dyn Fn(&SgmGpuTiming) -> f64| median(stages.iter().map(f).collect());
+    let stages_ms = SgmGpuTiming {
+        upload_ms: med(&|t| t.upload_ms),
+        census_ms: med(&|t| t.census_ms),
+        aggregate_ms: med(&|t| t.aggregate_ms),
+        select_ms: med(&|t| t.select_ms),
+        median_ms: med(&|t| t.median_ms),
+        readback_ms: med(&|t| t.readback_ms),
+        speckle_ms: med(&|t| t.speckle_ms),
+        total_ms: med(&|t| t.total_ms),
+        gpu_timestamps: stages.iter().all(|t| t.gpu_timestamps),
+    };
+    let mut scratch = Scratch::default();
+    let mut cpu_out = Vec::new();
+    let cpu_ms = median_ms(repeat.clamp(1, 10), || {
+        cpu_out = sgm(&left, &right, w, h, None, p, &mut scratch)?;
+        Ok::<(), String>(())
+    })?;
+    let (validity_differs, max_abs_diff_px) = disparity_parity(&gpu_out, &cpu_out);
+    let valid = cpu_out.iter().filter(|v| v.is_finite()).count();
+    Ok(SgmGpuBench {
+        adapter,
+        width: w,
+        height: h,
+        disparities: p.max_disparity,
+        paths: p.paths,
+        runs: repeat.max(1),
+        gpu_ms,
+        gpu_min_ms,
+        stages_ms,
+        cpu_ms,
+        cpu_threads: rayon::current_num_threads(),
+        speedup: cpu_ms / gpu_ms,
+        validity_differs,
+        max_abs_diff_px,
+        density_pct: 100.0 * valid as f64 / (w * h) as f64,
+    })
+}
