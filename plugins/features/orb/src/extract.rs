@@ -262,6 +262,9 @@ pub fn extract(
         detect_level(l, params, scratch);
         select(l, want, params, scratch);
         let level = &scratch.levels[l];
+        // Level pixel centres to level-0 pixel centres: each level is resized from the one
+        // before with centres aligned, so x0 + 0.5 = (x_l + 0.5) * (width / w).
+        let (sx, sy) = (width as f32 / w as f32, height as f32 / h as f32);
         for &(c, response) in &scratch.kept {
             let angle = if params.oriented {
                 orientation(&level.data, w, c.x as i32, c.y as i32)
@@ -277,8 +280,8 @@ pub fn extract(
                 params.pattern,
             ));
             keypoints.push(Keypoint {
-                x: c.x as f32 * level.scale,
-                y: c.y as f32 * level.scale,
+                x: (c.x as f32 + 0.5) * sx - 0.5,
+                y: (c.y as f32 + 0.5) * sy - 0.5,
                 size: 31.0 * level.scale,
                 angle,
                 response,
