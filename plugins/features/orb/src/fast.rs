@@ -46,7 +46,9 @@ fn has_arc9(mask: u32) -> bool {
     (r8 & (x >> 8)) != 0
 }
 
-/// Corner score: the largest `t` for which 9 contiguous pixels all differ from the centre by
+/// Corner score (the scalar form, for the portable path and row tails; the vector detectors
+/// compute the same in saturating bytes for a whole chunk): the largest `t` for which 9
+/// contiguous pixels all differ from the centre by
 /// more than `t` with one sign. Sliding minima over the wrapped ring (windows of 2, 4, 8, 9),
 /// fixed-size loops the compiler unrolls into a handful of SIMD operations.
 #[inline]
@@ -137,7 +139,7 @@ fn full_test(img: &[u8], centre: usize, offsets: &[isize; 16], t: u8) -> Option<
 macro_rules! fast_simd {
     ($name:ident, $feature:literal, $lanes:literal, $vec:ty, $load:ident, $set1:ident,
      $zero:ident, $xor:ident, $adds:ident, $subs:ident, $cmpgt:ident, $and:ident, $or:ident,
-     $movemask:ident) => {
+     $movemask:ident, $min:ident, $max:ident, $store:ident) => {
         #[cfg(target_arch = "x86_64")]
         #[target_feature(enable = $feature)]
         fn $name(
@@ -222,20 +224,41 @@ macro_rules! fast_simd {
                         any
                     };
                     let mut mask = ($movemask($or(arc9(&b), arc9(&d))) as u32) & !done;
-                    while mask != 0 {
-                        let i = mask.trailing_zeros() as usize;
-                        mask &= mask - 1;
-                        // A corner by the vector test: only its score is left to compute.
-                        let centre = c + i;
-                        let p = img[centre] as i16;
-                        let ring: [i16; 16] = std::array::from_fn(|k| {
-                            img[(centre as isize + offsets[k]) as usize] as i16 - p
-                        });
-                        out.push(Corner {
-                            x: (x + i) as u32,
-                            y: y as u32,
-                            score: score(&ring).max(t),
-                        });
+                    if mask != 0 {
+                        // The scores of every lane at once (`score`, in saturating bytes: a
+                        // corner's best arc minimum is above t >= 1, so clamping the
+                        // differences at 0 changes no maximum that matters).
+                        let (mut best_b, mut best_d) = (zero, zero);
+                        let (mut bd, mut dd) = ([zero; 16], [zero; 16]);
+                        for k in 0..16 {
+                            let v = ld(offsets[k]);
+                            bd[k] = $subs(v, p);
+                            dd[k] = $subs(p, v);
+                        }
+                        for (diffs, best) in [(&bd, &mut best_b), (&dd, &mut best_d)] {
+                            let m2: [$vec; 16] =
+                                std::array::from_fn(|k| $min(diffs[k], diffs[(k + 1) & 15]));
+                            let m4: [$vec; 16] =
+                                std::array::from_fn(|k| $min(m2[k], m2[(k + 2) & 15]));
+                            for k in 0..16 {
+                                let m9 = $min($min(m4[k], m4[(k + 4) & 15]), diffs[(k + 8) & 15]);
+                                *best = $max(*best, m9);
+                            }
+                        }
+                        let one = $set1(1);
+                        let scores = $max($subs($max(best_b, best_d), one), $set1(t as i8));
+                        let mut lanes = [0u8; $lanes];
+                        // SAFETY: `lanes` is one vector of writable bytes; the store is unaligned.
+                        unsafe { $store(lanes.as_mut_ptr().cast(), scores) };
+                        while mask != 0 {
+                            let i = mask.trailing_zeros() as usize;
+                            mask &= mask - 1;
+                            out.push(Corner {
+                                x: (x + i) as u32,
+                                y: y as u32,
+                                score: lanes[i],
+                            });
+                        }
                     }
                     x += $lanes;
                 }
@@ -268,7 +291,10 @@ fast_simd!(
     _mm_cmpgt_epi8,
     _mm_and_si128,
     _mm_or_si128,
-    _mm_movemask_epi8
+    _mm_movemask_epi8,
+    _mm_min_epu8,
+    _mm_max_epu8,
+    _mm_storeu_si128
 );
 fast_simd!(
     detect_avx2,
@@ -284,7 +310,10 @@ fast_simd!(
     _mm256_cmpgt_epi8,
     _mm256_and_si256,
     _mm256_or_si256,
-    _mm256_movemask_epi8
+    _mm256_movemask_epi8,
+    _mm256_min_epu8,
+    _mm256_max_epu8,
+    _mm256_storeu_si256
 );
 
 /// The portable detector: a vectorisable byte-wise rejection test per row, then the full test.
@@ -414,25 +443,20 @@ fn suppress(corners: &mut Vec<Corner>, w: usize, map: &mut [u8], keep: &mut Vec<
     }
     keep.clear();
     keep.extend(corners.iter().map(|c| {
-        let (x, y) = (c.x as usize, c.y as usize);
-        let s = map[y * w + x];
-        if s != c.score.max(1) {
-            return false; // a duplicate with a lower score
-        }
-        for dy in 0..3usize {
-            for dx in 0..3usize {
-                if dx == 1 && dy == 1 {
-                    continue;
-                }
-                let n = map[(y + dy - 1) * w + x + dx - 1];
-                // Earlier neighbours (in raster order) win ties.
-                let earlier = dy == 0 || (dy == 1 && dx == 0);
-                if n > s || (n == s && earlier) {
-                    return false;
-                }
-            }
-        }
-        true
+        let i = c.y as usize * w + c.x as usize;
+        let s = map[i];
+        // The row above and the left neighbour come earlier in raster order and win ties; the
+        // right neighbour and the row below must be strictly lower. A duplicate of the pixel
+        // with a lower score fails the first test. Branch-free: corners cluster, so a branch
+        // per neighbour would be mispredicted.
+        let (up, row, down) = (
+            &map[i - w - 1..i - w + 2],
+            &map[i - 1..i + 2],
+            &map[i + w - 1..i + w + 2],
+        );
+        let earlier = up[0].max(up[1]).max(up[2]).max(row[0]);
+        let later = down[0].max(down[1]).max(down[2]).max(row[2]);
+        (s == c.score.max(1)) & (earlier < s) & (later <= s)
     }));
     for c in corners.iter() {
         map[c.y as usize * w + c.x as usize] = 0;
@@ -523,6 +547,13 @@ mod tests {
                 let want_part: Vec<(u32, u32)> = want.iter().copied().filter(inside).collect();
                 let got_part: Vec<(u32, u32)> = part.iter().map(|c| (c.x, c.y)).collect();
                 assert_eq!(got_part, want_part, "threshold {t}, rect {rect:?}");
+                // The same scores on the narrower vector path (16 lanes) and the scalar tail.
+                let whole: Vec<Corner> = out
+                    .iter()
+                    .copied()
+                    .filter(|c| inside(&(c.x, c.y)))
+                    .collect();
+                assert_eq!(part, whole, "threshold {t}, rect {rect:?}");
             }
             assert!(!want.is_empty());
             // The score is the largest threshold that keeps the corner.
@@ -532,6 +563,59 @@ mod tests {
                     assert!(!is_corner(&img, w, c.x as usize, c.y as usize, c.score + 1));
                 }
             }
+        }
+    }
+
+    /// Suppression against its definition, on dense random corners with few score values (many
+    /// ties): a corner stays when no 8-neighbour scores higher, and no earlier neighbour in
+    /// raster order (the row above, the left pixel) scores the same.
+    #[test]
+    fn suppression_keeps_strict_maxima_with_raster_order_ties() {
+        let (w, h) = (23usize, 17usize);
+        let mut state = 11u32;
+        let mut rnd = move || {
+            state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            state >> 24
+        };
+        for round in 0..50 {
+            let mut corners = Vec::new();
+            for y in 1..h - 1 {
+                for x in 1..w - 1 {
+                    if rnd() % 3 != 0 {
+                        let score = (rnd() % 4) as u8 + (round % 2) as u8 * 20;
+                        corners.push(Corner {
+                            x: x as u32,
+                            y: y as u32,
+                            score,
+                        });
+                    }
+                }
+            }
+            let at = |x: i64, y: i64| {
+                corners
+                    .iter()
+                    .find(|c| c.x as i64 == x && c.y as i64 == y)
+                    .map_or(0, |c| c.score.max(1))
+            };
+            let want: Vec<Corner> = corners
+                .iter()
+                .copied()
+                .filter(|c| {
+                    let (x, y, s) = (c.x as i64, c.y as i64, c.score.max(1));
+                    (-1..=1i64).all(|dy| {
+                        (-1..=1i64).all(|dx| {
+                            let n = at(x + dx, y + dy);
+                            let earlier = dy < 0 || (dy == 0 && dx < 0);
+                            (dx == 0 && dy == 0) || n < s || (n == s && !earlier)
+                        })
+                    })
+                })
+                .collect();
+            let mut map = vec![0u8; w * h];
+            let mut got = corners.clone();
+            non_max_suppression(&mut got, w, &mut map);
+            assert_eq!(got, want, "round {round}");
+            assert!(map.iter().all(|&v| v == 0));
         }
     }
 
