@@ -46,11 +46,11 @@ fn has_arc9(mask: u32) -> bool {
     (r8 & (x >> 8)) != 0
 }
 
-/// Corner score (the scalar form, for the portable path and row tails; the vector detectors
-/// compute the same in saturating bytes for a whole chunk): the largest `t` for which 9
-/// contiguous pixels all differ from the centre by
+/// Corner score: the largest `t` for which 9 contiguous pixels all differ from the centre by
 /// more than `t` with one sign. Sliding minima over the wrapped ring (windows of 2, 4, 8, 9),
-/// fixed-size loops the compiler unrolls into a handful of SIMD operations.
+/// fixed-size loops the compiler unrolls into a handful of SIMD operations. This scalar form
+/// serves the portable path and the row tails; the vector detectors compute the same in
+/// saturating bytes for a whole chunk.
 #[inline]
 fn score(d: &[i16; 16]) -> u8 {
     let mut b = [0i16; 32];
