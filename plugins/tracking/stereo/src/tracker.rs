@@ -8,7 +8,10 @@ use misslam_features_matching::{match_descriptors, MatchParams, MatchScratch};
 use misslam_framework::nalgebra::{Isometry3, Matrix3, Point3, Vector3};
 use misslam_framework::{Descriptors, Features, Keypoint, Match, TrackingState};
 
-use crate::pose::{estimate, triangulation_cov, Observation, RansacParams, StereoCamera};
+use crate::pose::{
+    estimate, is_finite, refine, triangulation_cov, Observation, PoseEstimate, RansacParams,
+    StereoCamera,
+};
 
 /// Parameters of the tracker (`tracking.stereo`).
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
@@ -391,7 +394,34 @@ impl Tracker {
             }
         }
         match best {
-            Some((k, cand, e)) => {
+            Some((k, brute, e)) => {
+                // Confirmed by a guided search at the pose found (as ORB-SLAM's relocalisation
+                // searches by projection): the keyframe's points projected with that pose must
+                // find their matches where they land. Brute-force matches of a blurred or
+                // unfamiliar view can agree on a wrong pose (the inlier gate allows for tissue
+                // motion, about 10 px per mm at 70 mm); the projections of a wrong pose land
+                // where the image does not show those points.
+                let cand = self.guided(k, features, cam, size, &e.world_from_camera);
+                let (pose, inliers) = refine(cam, &cand.obs, e.world_from_camera, &ransac);
+                let inlier_count = inliers.iter().filter(|&&b| b).count();
+                if inlier_count < self.params.relocalise_min_inliers || !is_finite(&pose) {
+                    return Ok(self.lose(format!(
+                        "relocalisation against keyframe {} not confirmed: {} of {} brute-force \
+                         matches agreed on a pose, but a guided search there found {inlier_count} \
+                         inliers of {} matches ({} needed)",
+                        self.keyframes[k].frame,
+                        e.inlier_count,
+                        brute.obs.len(),
+                        cand.obs.len(),
+                        self.params.relocalise_min_inliers
+                    )));
+                }
+                let e = PoseEstimate {
+                    world_from_camera: pose,
+                    inliers,
+                    inlier_count,
+                    iterations: e.iterations,
+                };
                 // Recovered against a stored keyframe: after a loss, or on the frame where
                 // the reference keyframe could no longer be tracked.
                 let state = TrackingState::Relocalised;
