@@ -99,11 +99,24 @@ impl GpuProvider {
     }
 }
 
+/// The instance's settings: the primary backends (Vulkan, Metal, DX12) unless `WGPU_BACKEND`
+/// names others. wgpu's default would add OpenGL, whose compute path (GLSL through naga) gave
+/// the SGM kernels 1,379 of 3,840 pixels of another validity than the CPU on Mesa's llvmpipe,
+/// where lavapipe's Vulkan gives none: on a machine with only OpenGL the nodes therefore find
+/// no adapter and say so (or fall back to the CPU with `device = "auto"`) rather than compute
+/// wrong depth.
+fn instance_descriptor() -> wgpu::InstanceDescriptor {
+    wgpu::InstanceDescriptor {
+        backends: wgpu::Backends::PRIMARY,
+        ..wgpu::InstanceDescriptor::new_without_display_handle()
+    }
+    .with_env()
+}
+
 impl GpuContext {
     /// Opens the best adapter wgpu finds (high performance preferred).
     pub fn open() -> Result<Self, GpuError> {
-        let instance =
-            wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        let instance = wgpu::Instance::new(instance_descriptor());
         let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
             power_preference: wgpu::PowerPreference::HighPerformance,
             ..Default::default()
@@ -315,5 +328,19 @@ impl GrayKernel {
         let mut out = ctx.read_back(&out_buf, out_size)?;
         out.truncate(pixels);
         Ok(out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn only_the_primary_backends_unless_the_environment_names_others() {
+        if std::env::var_os("WGPU_BACKEND").is_some() {
+            eprintln!("skipped: WGPU_BACKEND is set, so it decides the backends");
+            return;
+        }
+        let backends = super::instance_descriptor().backends;
+        assert_eq!(backends, wgpu::Backends::PRIMARY);
+        assert!(!backends.contains(wgpu::Backends::GL));
     }
 }
