@@ -302,6 +302,10 @@ enum BenchCommand {
         /// The ORB tests: learned (rBRIEF) or gaussian (steered BRIEF).
         #[arg(long, default_value = "learned")]
         pattern: String,
+        /// FAST threshold of the retry in empty cells (default: the plugin's, 7); 0 disables the
+        /// retry, which with `--distribution none` is OpenCV's ORB detection rule.
+        #[arg(long)]
+        min_fast_threshold: Option<u8>,
         /// orb, or surf (SURF: `--n-features` caps the keypoints; timing only, no pair).
         #[arg(long, default_value = "orb")]
         detector: String,
@@ -573,6 +577,7 @@ fn run(command: Command) -> anyhow::Result<()> {
                     n_features,
                     distribution,
                     pattern,
+                    min_fast_threshold,
                     detector,
                     repeat,
                     out,
@@ -598,6 +603,7 @@ fn run(command: Command) -> anyhow::Result<()> {
                 n_features,
                 &distribution,
                 &pattern,
+                min_fast_threshold,
                 repeat,
             )
             .map_err(anyhow::Error::msg)?;

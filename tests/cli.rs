@@ -341,3 +341,80 @@ fn a_closed_or_full_stdout_ends_the_command_without_a_panic() {
         println!("skipped the full-device case: no /dev/full");
     }
 }
+
+#[test]
+fn features_bench_matches_an_image_to_itself_and_names_a_bad_threshold() {
+    let dir = common::tmp_dir("bench-features");
+    // Random 4x4 blocks on the left half, a faint gradient on the right (weak texture, where
+    // only the low-threshold retry finds corners).
+    let (w, h) = (160u32, 120u32);
+    let img = image::GrayImage::from_fn(w, h, |x, y| {
+        if x < w / 2 {
+            let cell = (x / 4) * 131 + (y / 4) * 71;
+            image::Luma([((cell.wrapping_mul(2_654_435_761) >> 24) & 0xff) as u8])
+        } else {
+            let v = 100 + ((x + y) % 9) as u8 + if (x / 7 + y / 5) % 2 == 0 { 9 } else { 0 };
+            image::Luma([v])
+        }
+    });
+    let path = dir.join("a.png");
+    img.save(&path).unwrap();
+    let run = |extra: &[&str]| {
+        let json = dir.join("f.json");
+        let out = misslam()
+            .args([
+                "bench",
+                "features",
+                "--repeat",
+                "1",
+                "--n-features",
+                "300",
+                "--image",
+            ])
+            .arg(&path)
+            .arg("--image2")
+            .arg(&path)
+            .args(extra)
+            .arg("--out")
+            .arg(&json)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr).to_string();
+        let v = out.status.success().then(|| {
+            serde_json::from_str::<serde_json::Value>(&std::fs::read_to_string(&json).unwrap())
+                .unwrap()
+        });
+        (v, err)
+    };
+    let (with_retry, err) = run(&["--distribution", "none"]);
+    let with_retry = with_retry.unwrap_or_else(|| panic!("{err}"));
+    let (opencv_rule, err) = run(&["--distribution", "none", "--min-fast-threshold", "0"]);
+    let opencv_rule = opencv_rule.unwrap_or_else(|| panic!("{err}"));
+    let n = |v: &serde_json::Value| v["keypoints"].as_u64().unwrap();
+    assert!(n(&opencv_rule) > 20, "{opencv_rule}");
+    // The retry adds corners on the weakly textured half.
+    assert!(
+        n(&with_retry) > n(&opencv_rule),
+        "{} vs {}",
+        n(&with_retry),
+        n(&opencv_rule)
+    );
+    // An image against itself: every match is a keypoint with itself.
+    let matches = opencv_rule["matches"].as_array().unwrap();
+    assert!(matches.len() > 20, "{opencv_rule}");
+    for m in matches {
+        let m: Vec<f64> = m
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
+        assert!(
+            (m[0] - m[2]).abs() < 1e-6 && (m[1] - m[3]).abs() < 1e-6,
+            "{m:?}"
+        );
+    }
+    let (bad, err) = run(&["--min-fast-threshold", "30"]);
+    assert!(bad.is_none());
+    assert!(err.contains("min_fast_threshold"), "{err}");
+}

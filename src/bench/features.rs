@@ -32,6 +32,7 @@ pub fn features(
     n_features: usize,
     distribution: &str,
     pattern: &str,
+    min_fast_threshold: Option<u8>,
     repeat: usize,
 ) -> Result<FeaturesBench, String> {
     use misslam_features_matching::{knn2_hamming, match_descriptors, MatchParams, MatchScratch};
@@ -54,11 +55,13 @@ pub fn features(
         "gaussian" => PatternKind::Gaussian,
         other => return Err(format!("--pattern `{other}`: expected learned or gaussian")),
     };
+    let defaults = OrbParams::default();
     let p = OrbParams {
         n_features,
         distribution,
         pattern,
-        ..OrbParams::default()
+        min_fast_threshold: min_fast_threshold.unwrap_or(defaults.min_fast_threshold),
+        ..defaults
     };
     p.validate()?;
     let (w, h, gray) = gray_image(image)?;
