@@ -11,7 +11,9 @@ Images: scikit-image's astronaut and the Middlebury motorcycle (left view), gray
 - Matching precision on pairs related by a known homography (rotation, scale, perspective): the
   second image is the first warped by H; a match (ratio 0.8, cross-check) is correct when H maps
   the first keypoint within 3 px of the second. Both run the same matching rule. misslam runs
-  with its learned tests (rBRIEF, the default) and with steered BRIEF's Gaussian tests.
+  with its learned tests (rBRIEF, the default) and with steered BRIEF's Gaussian tests, and with
+  OpenCV's detection rule (`none` and no low-threshold retry in empty cells: on weak texture the
+  retry adds weaker corners, and matches, that OpenCV does not find).
 """
 import argparse, json, os, subprocess, tempfile, time
 
@@ -50,11 +52,13 @@ def cv_match(da, db):
             and m[0].distance <= 64 and back.get(m[0].trainIdx) == m[0].queryIdx]
 
 
-def misslam(exe, a, b=None, n=1000, dist="quadtree", repeat=20, pattern="learned"):
+def misslam(exe, a, b=None, n=1000, dist="quadtree", repeat=20, pattern="learned", retry=True):
     with tempfile.TemporaryDirectory() as d:
         out = os.path.join(d, "r.json")
         cmd = [exe, "bench", "features", "--image", a, "--n-features", str(n), "--distribution", dist,
                "--pattern", pattern, "--repeat", str(repeat), "--out", out]
+        if not retry:
+            cmd += ["--min-fast-threshold", "0"]
         if b:
             cmd += ["--image2", b]
         subprocess.run(cmd, check=True, capture_output=True)
@@ -92,11 +96,18 @@ def main():
                 ts.append(1e3 * (time.perf_counter() - t))
             cv_ms = float(np.median(ts))
             ours = {dist: misslam(args.misslam, pa, dist=dist) for dist in ["quadtree", "none"]}
-            row = dict(image=name, opencv_orb_ms=cv_ms, misslam_orb_ms=ours["quadtree"]["orb_ms"],
-                       misslam_orb_none_ms=ours["none"]["orb_ms"], ratio=cv_ms / ours["quadtree"]["orb_ms"])
+            ours["rule"] = misslam(args.misslam, pa, dist="none", retry=False)
+            row = dict(image=name, opencv_orb_ms=cv_ms, opencv_keypoints=len(ka),
+                       misslam_orb_ms=ours["quadtree"]["orb_ms"], misslam_keypoints=ours["quadtree"]["keypoints"],
+                       misslam_orb_none_ms=ours["none"]["orb_ms"],
+                       misslam_orb_opencv_rule_ms=ours["rule"]["orb_ms"],
+                       misslam_opencv_rule_keypoints=ours["rule"]["keypoints"],
+                       ratio=cv_ms / ours["quadtree"]["orb_ms"])
             rows.append(row)
-            print(f"ORB 1000 kp {name}: OpenCV {cv_ms:.2f} ms, misslam {row['misslam_orb_ms']:.2f} ms "
-                  f"(none: {row['misslam_orb_none_ms']:.2f}) -> x{row['ratio']:.2f}")
+            print(f"ORB 1000 kp {name}: OpenCV {cv_ms:.2f} ms ({len(ka)} kp), misslam {row['misslam_orb_ms']:.2f} ms "
+                  f"({row['misslam_keypoints']} kp; none: {row['misslam_orb_none_ms']:.2f}; OpenCV's rule: "
+                  f"{row['misslam_orb_opencv_rule_ms']:.2f} ms, {row['misslam_opencv_rule_keypoints']} kp) "
+                  f"-> x{row['ratio']:.2f}")
             # 2000 x 2000 Hamming kNN: descriptors of this image against those of a warped copy.
             H = homographies(640, 480)[0][1]
             wb = cv2.warpPerspective(img, H, (640, 480))
@@ -124,18 +135,24 @@ def main():
                 m = cv_match(da, db)
                 cv_p, cv_n = precision([[*ka[x.queryIdx].pt, *kb[x.trainIdx].pt] for x in m], H)
                 res = {}
-                for dist, pattern in [("none", "learned"), ("quadtree", "learned"), ("none", "gaussian")]:
-                    r = misslam(args.misslam, pa, pb, n=1000, dist=dist, repeat=1, pattern=pattern)
-                    res[dist if pattern == "learned" else f"{dist}_{pattern}"] = precision(r["matches"], H)
+                for key, dist, pattern, retry in [("none", "none", "learned", True),
+                                                  ("quadtree", "quadtree", "learned", True),
+                                                  ("none_gaussian", "none", "gaussian", True),
+                                                  ("opencv_rule", "none", "learned", False)]:
+                    r = misslam(args.misslam, pa, pb, n=1000, dist=dist, repeat=1, pattern=pattern, retry=retry)
+                    res[key] = precision(r["matches"], H)
                 fmt = lambda k: f"{res[k][0]:.3f} ({res[k][1]})"
                 print(f"  {hname:<15} precision (matches): OpenCV {cv_p:.3f} ({cv_n}), misslam none "
-                      f"{fmt('none')}, quadtree {fmt('quadtree')}; steered BRIEF, none {fmt('none_gaussian')}")
+                      f"{fmt('none')}, quadtree {fmt('quadtree')}; steered BRIEF, none {fmt('none_gaussian')}; "
+                      f"OpenCV's rule (none, no retry) {fmt('opencv_rule')}")
                 rows.append(dict(image=name, warp=hname, opencv_precision=cv_p, opencv_matches=cv_n,
                                  misslam_none_precision=res["none"][0], misslam_none_matches=res["none"][1],
                                  misslam_quadtree_precision=res["quadtree"][0],
                                  misslam_quadtree_matches=res["quadtree"][1],
                                  misslam_none_gaussian_precision=res["none_gaussian"][0],
-                                 misslam_none_gaussian_matches=res["none_gaussian"][1]))
+                                 misslam_none_gaussian_matches=res["none_gaussian"][1],
+                                 misslam_opencv_rule_precision=res["opencv_rule"][0],
+                                 misslam_opencv_rule_matches=res["opencv_rule"][1]))
     if args.json:
         json.dump(rows, open(args.json, "w"), indent=1)
 
