@@ -8,6 +8,19 @@ use rayon::prelude::*;
 /// skipped, the first neighbour in the highest bit) is darker than the centre. Neighbours outside
 /// the image count as equal to the centre (bit 0).
 pub fn census(img: &[u8], w: usize, h: usize, cw: usize, ch: usize, out: &mut Vec<u64>) {
+    census_with(img, w, h, cw, ch, &mut Vec::new(), out);
+}
+
+/// [`census`] with the padded image kept in `pad` between calls (no allocation per frame).
+pub fn census_with(
+    img: &[u8],
+    w: usize,
+    h: usize,
+    cw: usize,
+    ch: usize,
+    pad: &mut Vec<u8>,
+    out: &mut Vec<u64>,
+) {
     let (rx, ry) = (cw / 2, ch / 2);
     // Pad with 255: "255 < centre" is never true, the same bit 0 as "equal to the centre". The
     // AVX2 rows compare signed bytes, so there every byte is offset by 128 (255 becomes 127,
@@ -15,7 +28,9 @@ pub fn census(img: &[u8], w: usize, h: usize, cw: usize, ch: usize, out: &mut Ve
     let simd = crate::simd::avx2();
     let flip = if simd { 0x80 } else { 0 };
     let pw = w + 2 * rx;
-    let mut pad = vec![255u8 ^ flip; pw * (h + 2 * ry) + 32];
+    // Every byte is set here: the border and slack to the pad value, the inside to the image.
+    pad.clear();
+    pad.resize(pw * (h + 2 * ry) + 32, 255u8 ^ flip);
     for y in 0..h {
         let dst = &mut pad[(y + ry) * pw + rx..(y + ry) * pw + rx + w];
         for (d, &s) in dst.iter_mut().zip(&img[y * w..(y + 1) * w]) {
@@ -32,10 +47,10 @@ pub fn census(img: &[u8], w: usize, h: usize, cw: usize, ch: usize, out: &mut Ve
         if simd {
             // SAFETY: the CPU supports AVX2 (checked above); `pad` is offset by 128 and has
             // 32 bytes of slack after its last row.
-            unsafe { census_row_avx2(&pad, pw, rx, ry, y, row) };
+            unsafe { census_row_avx2(pad, pw, rx, ry, y, row) };
             return;
         }
-        census_row_generic(&pad, pw, rx, ry, y, row);
+        census_row_generic(pad, pw, rx, ry, y, row);
     });
 }
 

@@ -6,15 +6,27 @@ use rayon::prelude::*;
 
 /// Left-right check, median and speckle removal on a full disparity image.
 pub fn finish(disp: &mut Vec<f32>, right: &[f32], w: usize, h: usize, p: &SgmParams) {
-    finish_with(disp, right, w, h, p, &mut SpeckleScratch::default());
+    let mut median = Vec::new();
+    finish_with(
+        disp,
+        right,
+        w,
+        h,
+        p,
+        &mut median,
+        &mut SpeckleScratch::default(),
+    );
 }
 
+/// [`finish`] with its buffers kept between calls: `median` receives the filtered image and is
+/// swapped with `disp`.
 pub(crate) fn finish_with(
     disp: &mut Vec<f32>,
     right: &[f32],
     w: usize,
     h: usize,
     p: &SgmParams,
+    median: &mut Vec<f32>,
     speckle: &mut SpeckleScratch,
 ) {
     if p.lr_check && w > 0 {
@@ -23,7 +35,8 @@ pub(crate) fn finish_with(
         }
     }
     if p.median {
-        *disp = median3(disp, w, h);
+        median3_into(disp, w, h, median);
+        std::mem::swap(disp, median);
     }
     if p.speckle_window > 0 {
         remove_speckles_with(
@@ -160,9 +173,19 @@ macro_rules! sort9 {
 /// the n valid values lead in order and the median is the one at n / 2. The borders (and the
 /// tail of each row) take the sort of the valid values.
 pub fn median3(d: &[f32], w: usize, h: usize) -> Vec<f32> {
-    let mut out = vec![f32::NAN; w * h];
+    let mut out = Vec::new();
+    median3_into(d, w, h, &mut out);
+    out
+}
+
+/// [`median3`] into `out`, reusing its allocation (every pixel is written).
+pub fn median3_into(d: &[f32], w: usize, h: usize, out: &mut Vec<f32>) {
+    if out.len() != w * h {
+        out.clear();
+        out.resize(w * h, f32::NAN);
+    }
     if w == 0 {
-        return out;
+        return;
     }
     out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         if y == 0 || y + 1 >= h || w < 3 {
@@ -173,7 +196,6 @@ pub fn median3(d: &[f32], w: usize, h: usize) -> Vec<f32> {
         }
         median_row(d, w, h, y, row);
     });
-    out
 }
 
 fn median_row(d: &[f32], w: usize, h: usize, y: usize, row: &mut [f32]) {
@@ -602,6 +624,10 @@ mod tests {
             for portable in [false, true] {
                 crate::simd::force_portable(portable);
                 let got = median3(&d, w, h);
+                // Into a reused buffer of the right size holding stale values: every pixel is
+                // written, so the result is the same.
+                let mut reused = vec![123.0f32; w * h];
+                median3_into(&d, w, h, &mut reused);
                 crate::simd::force_portable(false);
                 for (i, (g, r)) in got.iter().zip(&want).enumerate() {
                     assert!(
@@ -609,6 +635,13 @@ mod tests {
                         "{w}x{h} pixel {i}: {g} instead of {r} (portable {portable})"
                     );
                 }
+                assert!(
+                    reused
+                        .iter()
+                        .zip(&got)
+                        .all(|(a, b)| a.to_bits() == b.to_bits()),
+                    "{w}x{h}: a reused buffer kept stale pixels (portable {portable})"
+                );
             }
         }
     }

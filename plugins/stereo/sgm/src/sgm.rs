@@ -21,7 +21,7 @@ use std::sync::atomic::{AtomicU8, Ordering};
 
 pub use crate::aggregate::path_step;
 use crate::aggregate::{pass, Costs, Ctx, PassScratch, LANES};
-pub use crate::census::census;
+pub use crate::census::{census, census_with};
 use crate::filters::finish_with;
 pub use crate::filters::{finish, median3, remove_speckles, remove_speckles_with, SpeckleScratch};
 use crate::select::{select_row, RightScratch};
@@ -180,6 +180,10 @@ pub struct Scratch {
     right_scratch_b: RightScratch,
     /// Matching costs kept by the forward pass for the backward one (one thread).
     cost_vol: Vec<u8>,
+    /// The padded images of the census transform.
+    census_pad: [Vec<u8>; 2],
+    /// The median's output, swapped with the disparities.
+    median: Vec<f32>,
     speckle: SpeckleScratch,
     timing: SgmTiming,
 }
@@ -256,14 +260,16 @@ pub fn sgm(
         right_scratch,
         right_scratch_b,
         cost_vol,
+        census_pad: [pad_l, pad_r],
+        median,
         speckle,
         timing,
     } = s;
     let ms = |t: std::time::Instant| t.elapsed().as_secs_f64() * 1e3;
     let t0 = std::time::Instant::now();
     rayon::join(
-        || census(left, w, h, cw, ch, census_l),
-        || census(right, w, h, cw, ch, census_r),
+        || census_with(left, w, h, cw, ch, pad_l, census_l),
+        || census_with(right, w, h, cw, ch, pad_r, census_r),
     );
     let nd = p.max_disparity as usize;
     // Every L is at most C_max + P2 (C_max: the census bits); when that fits a byte the AVX2
@@ -375,7 +381,7 @@ pub fn sgm(
     }
     let t2 = std::time::Instant::now();
     timing.backward_select_ms = (t2 - t1).as_secs_f64() * 1e3 - timing.forward_ms;
-    finish_with(&mut disp, right_disp, w, h, p, speckle);
+    finish_with(&mut disp, right_disp, w, h, p, median, speckle);
     timing.finish_ms = ms(t2);
     timing.total_ms = ms(t0);
     Ok(disp)

@@ -2,7 +2,7 @@
 #![allow(clippy::unwrap_used)] // test code: a failed unwrap is the test failing
 
 use misslam_depth_sgm::sgm::{
-    census, median3, path_step, remove_speckles, sgm, Scratch, SgmParams,
+    census, census_with, median3, path_step, remove_speckles, sgm, Scratch, SgmParams,
 };
 
 /// Deterministic random dots.
@@ -54,6 +54,8 @@ fn census_matches_the_reference_for_every_window_shape_on_both_code_paths() {
     use misslam_depth_sgm::reference::census_reference;
     // Widths around the 32- and 64-pixel blocks; windows from 8 to 64 comparisons (13x5 and
     // 5x13 fill all 64 bits), including extreme gray levels at the borders.
+    // One pad buffer across every size and window, as a `Scratch` keeps it between frames.
+    let mut pad = vec![0u8; 5];
     for (w, h) in [(70, 9), (31, 14), (96, 5), (1, 3)] {
         let mut img = dots(w, h, (w * h) as u64);
         img[0] = 255;
@@ -64,8 +66,14 @@ fn census_matches_the_reference_for_every_window_shape_on_both_code_paths() {
                 misslam_depth_sgm::simd::force_portable(portable);
                 let mut got = vec![7u64; 3];
                 census(&img, w, h, cw, ch, &mut got);
+                let mut reused = vec![9u64; 2];
+                census_with(&img, w, h, cw, ch, &mut pad, &mut reused);
                 misslam_depth_sgm::simd::force_portable(false);
                 assert_eq!(got, want, "{w}x{h}, window {cw}x{ch}, portable {portable}");
+                assert_eq!(
+                    reused, want,
+                    "reused pad: {w}x{h}, window {cw}x{ch}, portable {portable}"
+                );
             }
         }
     }
