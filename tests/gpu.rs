@@ -120,15 +120,7 @@ fn stereo_scene(w: usize, h: usize, seed: u64) -> (Vec<u8>, Vec<u8>) {
             3 + (x + 2 * y) / 25
         }
     };
-    let mut right = fill;
-    let mut order: Vec<(usize, usize)> = (0..h).flat_map(|y| (0..w).map(move |x| (x, y))).collect();
-    order.sort_by_key(|&(x, y)| disp(x, y));
-    for (x, y) in order {
-        let d = disp(x, y);
-        if x >= d {
-            right[y * w + x - d] = left[y * w + x];
-        }
-    }
+    let right = misslam_depth_sgm::synthetic::right_view(&left, w, h, disp, fill);
     (left, right)
 }
 

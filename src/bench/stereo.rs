@@ -231,7 +231,7 @@ pub fn random_dot_pair(w: usize, h: usize, nd: u32) -> (Vec<u8>, Vec<u8>) {
         (s >> 24) as u8
     };
     let left: Vec<u8> = (0..w * h).map(|_| next()).collect();
-    let mut right: Vec<u8> = (0..w * h).map(|_| next()).collect();
+    let fill: Vec<u8> = (0..w * h).map(|_| next()).collect();
     let top = (nd.max(4) - 2) as usize;
     let disp = |x: usize, y: usize| {
         if (w / 3..w / 2).contains(&x) && (h / 4..h / 2).contains(&y) {
@@ -240,14 +240,7 @@ pub fn random_dot_pair(w: usize, h: usize, nd: u32) -> (Vec<u8>, Vec<u8>) {
             2 + (x + 2 * y) * (top / 2) / (w + 2 * h)
         }
     };
-    let mut order: Vec<(usize, usize)> = (0..h).flat_map(|y| (0..w).map(move |x| (x, y))).collect();
-    order.sort_by_key(|&(x, y)| disp(x, y));
-    for (x, y) in order {
-        let d = disp(x, y);
-        if x >= d {
-            right[y * w + x - d] = left[y * w + x];
-        }
-    }
+    let right = misslam_depth_sgm::synthetic::right_view(&left, w, h, disp, fill);
     (left, right)
 }
 

@@ -13,6 +13,7 @@ pub mod reference;
 mod select;
 pub mod sgm;
 pub mod simd;
+pub mod synthetic;
 
 use misslam_framework::gpu::GpuContext;
 use misslam_framework::{

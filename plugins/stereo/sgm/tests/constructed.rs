@@ -4,6 +4,7 @@
 use misslam_depth_sgm::sgm::{
     census, census_with, median3, path_step, remove_speckles, sgm, Scratch, SgmParams,
 };
+use misslam_depth_sgm::synthetic::right_view;
 
 /// Deterministic random dots.
 fn dots(w: usize, h: usize, seed: u64) -> Vec<u8> {
@@ -16,27 +17,6 @@ fn dots(w: usize, h: usize, seed: u64) -> Vec<u8> {
             (s >> 56) as u8
         })
         .collect()
-}
-
-/// Right image of a scene whose left pixel x shows what the right sees at x - disp(x, y).
-fn shift(
-    left: &[u8],
-    w: usize,
-    h: usize,
-    disp: impl Fn(usize, usize) -> usize,
-    fill: &[u8],
-) -> Vec<u8> {
-    let mut right = fill.to_vec();
-    // Paint far to near so the nearer surface wins.
-    let mut order: Vec<(usize, usize)> = (0..h).flat_map(|y| (0..w).map(move |x| (x, y))).collect();
-    order.sort_by_key(|&(x, y)| disp(x, y));
-    for (x, y) in order {
-        let d = disp(x, y);
-        if x >= d {
-            right[y * w + x - d] = left[y * w + x];
-        }
-    }
-    right
 }
 
 #[test]
@@ -94,7 +74,7 @@ fn path_step_is_the_recurrence() {
 fn constant_disparity_is_recovered_exactly() {
     let (w, h) = (96, 64);
     let left = dots(w, h, 3);
-    let right = shift(&left, w, h, |_, _| 7, &dots(w, h, 99));
+    let right = right_view(&left, w, h, |_, _| 7, dots(w, h, 99));
     let p = SgmParams {
         max_disparity: 16,
         census_width: 5,
@@ -120,12 +100,12 @@ fn left_right_check_invalidates_the_occluded_strip() {
     let left = dots(w, h, 5);
     // Background at disparity 4, a square in front at 14 (x 50..80, y 15..45).
     let fg = |x: usize, y: usize| (50..80).contains(&x) && (15..45).contains(&y);
-    let right = shift(
+    let right = right_view(
         &left,
         w,
         h,
         |x, y| if fg(x, y) { 14 } else { 4 },
-        &dots(w, h, 77),
+        dots(w, h, 77),
     );
     let p = SgmParams {
         max_disparity: 24,
@@ -185,7 +165,7 @@ fn speckles_and_median() {
 fn masked_pixels_get_no_disparity_and_bad_parameters_are_named() {
     let (w, h) = (40, 20);
     let left = dots(w, h, 1);
-    let right = shift(&left, w, h, |_, _| 3, &dots(w, h, 2));
+    let right = right_view(&left, w, h, |_, _| 3, dots(w, h, 2));
     let mut mask = vec![1u8; w * h];
     mask[10 * w + 20] = 0;
     let p = SgmParams {
@@ -244,7 +224,7 @@ fn the_fast_path_gives_exactly_the_reference_output() {
     // A slanted scene with texture, occlusions and a border; sizes not multiples of 16 or 64.
     let (w, h) = (83, 37);
     let left = dots(w, h, 11);
-    let right = shift(&left, w, h, |x, y| 3 + (x + 2 * y) / 20, &dots(w, h, 12));
+    let right = right_view(&left, w, h, |x, y| 3 + (x + 2 * y) / 20, dots(w, h, 12));
     let mut mask = vec![1u8; w * h];
     mask[..w * 2].fill(0);
     let cases = [
@@ -400,7 +380,7 @@ fn two_threads_hand_rows_over_and_give_the_one_thread_output() {
     // different interleavings of the row hand-over occur.
     let (w, h) = (240, 160);
     let left = dots(w, h, 21);
-    let right = shift(&left, w, h, |x, y| 4 + (x + 3 * y) / 40, &dots(w, h, 22));
+    let right = right_view(&left, w, h, |x, y| 4 + (x + 3 * y) / 40, dots(w, h, 22));
     for p in [
         SgmParams::default(),
         SgmParams {
