@@ -161,6 +161,7 @@ macro_rules! fast_simd {
             let t = threshold.max(1);
             let bias = $set1(-128);
             let tv = $set1(t as i8);
+            let one = $set1(1);
             let zero = $zero();
             for y in y0..y1 {
                 let mut x = x0;
@@ -245,8 +246,7 @@ macro_rules! fast_simd {
                                 *best = $max(*best, m9);
                             }
                         }
-                        let one = $set1(1);
-                        let scores = $max($subs($max(best_b, best_d), one), $set1(t as i8));
+                        let scores = $max($subs($max(best_b, best_d), one), tv);
                         let mut lanes = [0u8; $lanes];
                         // SAFETY: `lanes` is one vector of writable bytes; the store is unaligned.
                         unsafe { $store(lanes.as_mut_ptr().cast(), scores) };
