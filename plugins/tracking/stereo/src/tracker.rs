@@ -379,62 +379,64 @@ impl Tracker {
                 return Ok(result);
             }
         }
-        // Lost, or lost on this frame: try every keyframe, most recent first.
+        // Lost, or lost on this frame: every keyframe by brute force (most recent first), then
+        // the hypotheses in order of their inliers until one is confirmed.
         let ransac = self.params.ransac(self.params.relocalise_min_inliers);
-        let mut best: Option<(usize, Candidates, crate::pose::PoseEstimate)> = None;
+        let mut found: Vec<(usize, usize, crate::pose::PoseEstimate)> = Vec::new();
         for k in (0..self.keyframes.len()).rev() {
             let cand = self.brute(k, features, cam)?;
             if let Some(e) = estimate(cam, &cand.obs, &ransac, frame ^ k as u64) {
-                if best
-                    .as_ref()
-                    .is_none_or(|b| e.inlier_count > b.2.inlier_count)
-                {
-                    best = Some((k, cand, e));
-                }
+                found.push((k, cand.obs.len(), e));
             }
         }
-        match best {
-            Some((k, brute, e)) => {
-                // Confirmed by a guided search at the pose found (as ORB-SLAM's relocalisation
-                // searches by projection): the keyframe's points projected with that pose must
-                // find their matches where they land. Brute-force matches of a blurred or
-                // unfamiliar view can agree on a wrong pose (the inlier gate allows for tissue
-                // motion, about 10 px per mm at 70 mm); the projections of a wrong pose land
-                // where the image does not show those points.
-                let cand = self.guided(k, features, cam, size, &e.world_from_camera);
-                let (pose, inliers) = refine(cam, &cand.obs, e.world_from_camera, &ransac);
-                let inlier_count = inliers.iter().filter(|&&b| b).count();
-                if inlier_count < self.params.relocalise_min_inliers || !is_finite(&pose) {
-                    return Ok(self.lose(format!(
-                        "relocalisation against keyframe {} not confirmed: {} of {} brute-force \
-                         matches agreed on a pose, but a guided search there found {inlier_count} \
-                         inliers of {} matches ({} needed)",
+        // Stable: equal counts keep the most recent keyframe first.
+        found.sort_by_key(|(_, _, e)| std::cmp::Reverse(e.inlier_count));
+        let mut refused = None;
+        for (k, brute_matches, e) in found {
+            // Confirmed by a guided search at the pose found (as ORB-SLAM's relocalisation
+            // searches by projection): the keyframe's points projected with that pose must
+            // find their matches where they land. Brute-force matches of a blurred or
+            // unfamiliar view can agree on a wrong pose (the inlier gate allows for tissue
+            // motion, about 10 px per mm at 70 mm); the projections of a wrong pose land
+            // where the image does not show those points.
+            let cand = self.guided(k, features, cam, size, &e.world_from_camera);
+            let (pose, inliers) = refine(cam, &cand.obs, e.world_from_camera, &ransac);
+            let inlier_count = inliers.iter().filter(|&&b| b).count();
+            if inlier_count < self.params.relocalise_min_inliers || !is_finite(&pose) {
+                refused.get_or_insert_with(|| {
+                    format!(
+                        "relocalisation not confirmed: against keyframe {}, {} of {brute_matches} \
+                         brute-force matches agreed on a pose, but a guided search there found \
+                         {inlier_count} inliers of {} matches ({} needed)",
                         self.keyframes[k].frame,
                         e.inlier_count,
-                        brute.obs.len(),
                         cand.obs.len(),
                         self.params.relocalise_min_inliers
-                    )));
-                }
-                let e = PoseEstimate {
-                    world_from_camera: pose,
-                    inliers,
-                    inlier_count,
-                    iterations: e.iterations,
-                };
-                // Recovered against a stored keyframe: after a loss, or on the frame where
-                // the reference keyframe could no longer be tracked.
-                let state = TrackingState::Relocalised;
-                self.reference = k;
-                self.velocity = Isometry3::identity();
-                Ok(self.success(frame, features, cam, &cand, &e, k, state, false))
+                    )
+                });
+                continue;
             }
-            None => Ok(self.lose(format!(
+            let e = PoseEstimate {
+                world_from_camera: pose,
+                inliers,
+                inlier_count,
+                iterations: e.iterations,
+            };
+            // Recovered against a stored keyframe: after a loss, or on the frame where the
+            // reference keyframe could no longer be tracked.
+            let state = TrackingState::Relocalised;
+            self.reference = k;
+            self.velocity = Isometry3::identity();
+            return Ok(self.success(frame, features, cam, &cand, &e, k, state, false));
+        }
+        let reason = refused.unwrap_or_else(|| {
+            format!(
                 "no keyframe of {} gives {} inliers",
                 self.keyframes.len(),
                 self.params.relocalise_min_inliers
-            ))),
-        }
+            )
+        });
+        Ok(self.lose(reason))
     }
 
     /// Map reuse: the oldest of the `reuse_candidates` keyframes (other than `skip`, and only
