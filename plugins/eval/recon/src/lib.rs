@@ -201,12 +201,21 @@ impl<'a> SurfaceIndex<'a> {
             .max()
             .unwrap_or(0);
         let max_ring = *self.dims.iter().max().unwrap_or(&1) as i64 + outside + 1;
-        for ring in 0..=max_ring {
+        // The offsets of a ring that land inside the grid (a point far outside it, e.g. of a
+        // diverged model, visits only the grid's cells, not the empty rings around it).
+        let span = |k: usize, ring: i64| {
+            (
+                ring.min(c[k]).max(-ring),
+                ring.min(self.dims[k] as i64 - 1 - c[k]),
+            )
+        };
+        for ring in outside..=max_ring {
             // Every triangle within `ring` cells has been seen: nothing unseen is closer than
             // the distance from p to the boundary of the searched block.
-            for dz in -ring..=ring {
-                for dy in -ring..=ring {
-                    for dx in -ring..=ring {
+            let ((z0, z1), (y0, y1), (x0, x1)) = (span(2, ring), span(1, ring), span(0, ring));
+            for dz in -z0..=z1 {
+                for dy in -y0..=y1 {
+                    for dx in -x0..=x1 {
                         if dx.abs().max(dy.abs()).max(dz.abs()) != ring {
                             continue;
                         }
@@ -491,6 +500,17 @@ mod tests {
         let (s, d) = score(&pts, &gt).unwrap();
         for (k, dk) in d.iter().enumerate() {
             assert!((dk - 0.1 * (k + 1) as f32).abs() < 1e-4, "point {k}: {dk}");
+        }
+        // Points far outside the grid (a diverged model): the exact distance to the plane's
+        // nearest edge or face, found by searching only the grid's cells.
+        let index = SurfaceIndex::new(&gt).unwrap();
+        for (p, want) in [
+            ([0.0, 0.0, 1.0e5], 1.0e5 - 100.0),
+            ([50.0 + 3.0e4, 0.0, 100.0], 3.0e4),
+            ([-50.0 - 300.0, -50.0 - 400.0, 100.0], 500.0),
+        ] {
+            let got = index.distance(p);
+            assert!((got - want).abs() < want * 1e-5, "{p:?}: {got} vs {want}");
         }
         let want_mean = (1..=20).map(|k| 0.1 * k as f64).sum::<f64>() / 20.0;
         let want_rms = ((1..=20).map(|k| (0.1 * k as f64).powi(2)).sum::<f64>() / 20.0).sqrt();
