@@ -97,6 +97,7 @@ fn all_payloads() -> Vec<(&'static str, Payload)> {
                 }],
                 descriptors: Descriptors::Binary256(vec![[0; 4]]),
                 points: Some(vec![[0.0, 0.0, 40.0]]),
+                sampler: None,
             })),
         ),
         (

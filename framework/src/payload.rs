@@ -340,6 +340,35 @@ pub struct Features {
     pub descriptors: Descriptors,
     /// 3D position in the camera frame (mm) per keypoint, NaN without a stereo match.
     pub points: Option<Vec<[f32; 3]>>,
+    /// Descriptors of the same kind at any pixel of the left image, where the detector can give
+    /// them (upright dense SURF): a match to a grid keypoint can then be moved to the pixel whose
+    /// descriptor fits best, so that it follows the tissue instead of the grid.
+    pub sampler: Option<Sampler>,
+}
+
+/// Float descriptors at any pixel of the image that a [`Features`] came from.
+pub trait DescriptorSampler: Send + Sync {
+    /// Width and height of the image, pixels.
+    fn size(&self) -> (u32, u32);
+    /// The descriptor centred on pixel (x, y); None where its window leaves the image.
+    fn float64_at(&self, x: i32, y: i32) -> Option<[f32; 64]>;
+}
+
+/// A shared [`DescriptorSampler`]; two are equal when they are the same sampler.
+#[derive(Clone)]
+pub struct Sampler(pub Arc<dyn DescriptorSampler>);
+
+impl PartialEq for Sampler {
+    fn eq(&self, other: &Self) -> bool {
+        Arc::ptr_eq(&self.0, &other.0)
+    }
+}
+
+impl fmt::Debug for Sampler {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let (w, h) = self.0.size();
+        write!(f, "Sampler({w}x{h})")
+    }
 }
 
 /// One correspondence between two keypoint sets.

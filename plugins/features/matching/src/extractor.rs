@@ -5,7 +5,7 @@
 
 use misslam_framework::{
     BuildError, Descriptors, Features, Flow, FrameInfo, Image, Inputs, Keypoint, Mask, Matches,
-    Node, NodeContext, NodeError, NodeResult, Outputs, PortSpec, PortType, StereoFrame,
+    Node, NodeContext, NodeError, NodeResult, Outputs, PortSpec, PortType, Sampler, StereoFrame,
 };
 
 use crate::retain_in_mask;
@@ -34,6 +34,10 @@ pub trait Detector: Default + Send {
     fn wrap(d: Vec<Self::Descriptor>) -> Descriptors;
     /// Back from the payload (empty for the other kind).
     fn unwrap(d: Descriptors) -> Vec<Self::Descriptor>;
+    /// Descriptors at any pixel of the last image, where the detector gives them (dense grids).
+    fn sampler(&self) -> Option<Sampler> {
+        None
+    }
 }
 
 /// One image's keypoints and descriptors, with the buffers reused across frames.
@@ -77,6 +81,11 @@ impl<D: Detector> Extractor<D> {
     /// The gray image of the last run.
     pub fn gray(&self) -> &[u8] {
         &self.gray
+    }
+
+    /// The detector's descriptors at any pixel of the last image, where it gives them.
+    pub fn sampler(&self) -> Option<Sampler> {
+        self.detector.sampler()
     }
 }
 
@@ -151,6 +160,7 @@ impl<D: Detector> StereoExtractor<D> {
                 keypoints: self.left.keypoints.clone(),
                 descriptors: ld,
                 points: Some(points),
+                sampler: self.left.sampler(),
             },
             matches,
         ))
@@ -180,6 +190,7 @@ impl<D: Detector> StereoExtractor<D> {
                     keypoints: self.left.keypoints.clone(),
                     descriptors: D::wrap(self.left.descriptors.clone()),
                     points: None,
+                    sampler: self.left.sampler(),
                 },
             )?;
         } else {

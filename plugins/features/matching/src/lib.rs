@@ -12,6 +12,7 @@
 //!   within a radius.
 #![deny(missing_docs)]
 
+pub mod dense;
 pub mod extractor;
 pub mod guided;
 pub mod stereo;

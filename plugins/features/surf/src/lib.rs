@@ -3,10 +3,13 @@
 //! right image to give each keypoint a 3D position. The algorithm is the plain library [`surf`].
 #![deny(missing_docs)]
 
+pub mod sampler;
 pub mod surf;
 
 use misslam_features_matching::extractor::{self, Detector, FeatureNode, FeatureParams};
-use misslam_framework::{BuildContext, BuildError, Descriptors, Keypoint, Registry, TypedPlugin};
+use misslam_framework::{
+    BuildContext, BuildError, Descriptors, Keypoint, Registry, Sampler, TypedPlugin,
+};
 
 pub use surf::{DenseParams, SurfParams};
 
@@ -56,6 +59,11 @@ impl Detector for Detect {
             Descriptors::Float64(d) => d,
             Descriptors::Binary256(_) => Vec::new(),
         }
+    }
+
+    fn sampler(&self) -> Option<Sampler> {
+        let maps = self.scratch.sampler.clone()?;
+        Some(Sampler(maps))
     }
 }
 

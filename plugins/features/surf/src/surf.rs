@@ -5,6 +5,9 @@
 //! descriptor of (sum dx, sum dy, sum |dx|, sum |dy|) over 4x4 sub-regions. Dense SURF computes
 //! the same descriptor on a regular grid at one scale.
 
+use std::sync::Arc;
+
+use crate::sampler::UprightSampler;
 use misslam_framework::Keypoint;
 
 /// Parameters of the detector and descriptor (`features.surf`).
@@ -220,6 +223,9 @@ pub struct SurfScratch {
     /// The integral image of the last frame.
     pub integral: Integral,
     layers: Vec<Layer>,
+    /// Upright dense SURF: the last image's Haar response maps (shared with the features it
+    /// gave; rebuilt in place once nobody else holds them).
+    pub sampler: Option<Arc<UprightSampler>>,
 }
 
 /// Detects (or, dense, places) keypoints and computes their descriptors.
@@ -254,6 +260,25 @@ pub fn extract(
     } else {
         !p.upright
     };
+    if p.dense.enabled && !oriented {
+        // Every grid descriptor from the response maps (the same values, far fewer box sums).
+        let mut maps = s
+            .sampler
+            .take()
+            .filter(|a| Arc::strong_count(a) == 1)
+            .unwrap_or_default();
+        let m = Arc::make_mut(&mut maps);
+        m.build(ii, w, h, p.dense.scale);
+        for k in keypoints.iter() {
+            let d = m
+                .at(k.x as i32, k.y as i32)
+                .unwrap_or_else(|| descriptor(ii, k.x, k.y, p.dense.scale, f32::NAN));
+            descriptors.push(d);
+        }
+        s.sampler = Some(maps);
+        return Ok(());
+    }
+    s.sampler = None;
     for k in keypoints.iter_mut() {
         if oriented {
             k.angle = orientation(ii, k.x, k.y, k.size / 20.0);
@@ -495,7 +520,7 @@ pub fn descriptor(ii: &Integral, x: f32, y: f32, s: f32, angle: f32) -> [f32; 64
     } else {
         (0.0, 1.0)
     };
-    let haar = (2.0 * s).round().max(2.0) as i64 & !1;
+    let haar = haar_size(s);
     let mut d = [0f32; 64];
     for sy in 0..4 {
         for sx in 0..4 {
@@ -508,7 +533,7 @@ pub fn descriptor(ii: &Integral, x: f32, y: f32, s: f32, angle: f32) -> [f32; 64
                     let px = x + s * (u * co - v * sn);
                     let py = y + s * (u * sn + v * co);
                     let (ix, iy) = (px.round() as i64, py.round() as i64);
-                    let w = gauss(u, v, 3.3);
+                    let w = descriptor_weight(u, v);
                     let rx = ii.haar_x(ix, iy, haar);
                     let ry = ii.haar_y(ix, iy, haar);
                     let du = w * (rx * co + ry * sn);
@@ -522,13 +547,28 @@ pub fn descriptor(ii: &Integral, x: f32, y: f32, s: f32, angle: f32) -> [f32; 64
             d[(sy * 4 + sx) * 4..(sy * 4 + sx) * 4 + 4].copy_from_slice(&acc);
         }
     }
+    normalise(&mut d);
+    d
+}
+
+/// Side of the Haar wavelets of a descriptor at scale `s`: 2 s, even, at least 2.
+pub fn haar_size(s: f32) -> i64 {
+    (2.0 * s).round().max(2.0) as i64 & !1
+}
+
+/// Gaussian weight (sigma 3.3) of the descriptor sample at (u, v), units of s.
+pub fn descriptor_weight(u: f32, v: f32) -> f32 {
+    gauss(u, v, 3.3)
+}
+
+/// Scales a descriptor to unit length (a zero one stays zero).
+pub fn normalise(d: &mut [f32; 64]) {
     let n = d.iter().map(|v| v * v).sum::<f32>().sqrt();
     if n > 0.0 {
-        for v in &mut d {
+        for v in d.iter_mut() {
             *v /= n;
         }
     }
-    d
 }
 
 #[cfg(test)]

@@ -250,6 +250,7 @@ pub struct SurfelNode {
     /// The previous frame's keypoints anchored to the model (E_corr).
     anchors: corr::Anchors,
     anchor_scratch: corr::AnchorScratch,
+    refine_scratch: misslam_features_matching::dense::RefineScratch,
     /// Solves run, and the correspondences they used (for `metrics.json`).
     solves: u64,
     corr_used: u64,
@@ -377,10 +378,16 @@ impl SurfelNode {
             self.subset
                 .gather(&visible, &m.canon, &m.normals, &m.bindings);
             let corrs = match features {
-                Some(f) => {
-                    corr::correspondences(f, &self.anchors, &pose, &k, &self.p.correspondences)
-                        .map_err(|e| NodeError::msg(format!("frame {}: {e}", frame.index)))?
-                }
+                Some(f) => corr::correspondences(
+                    f,
+                    &self.anchors,
+                    &pose,
+                    &k,
+                    &self.vertices,
+                    &self.p.correspondences,
+                    &mut self.refine_scratch,
+                )
+                .map_err(|e| NodeError::msg(format!("frame {}: {e}", frame.index)))?,
                 None => Vec::new(),
             };
             metrics
@@ -718,6 +725,7 @@ pub fn build(p: Params, _: &BuildContext) -> Result<SurfelNode, BuildError> {
         disagreeing: false,
         anchors: corr::Anchors::default(),
         anchor_scratch: corr::AnchorScratch::default(),
+        refine_scratch: Default::default(),
         solves: 0,
         corr_used: 0,
     })

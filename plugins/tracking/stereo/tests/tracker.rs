@@ -94,6 +94,7 @@ impl World {
             keypoints: kps,
             descriptors: Descriptors::Binary256(desc),
             points: Some(pts),
+            sampler: None,
         }
     }
 }
@@ -226,6 +227,7 @@ fn a_black_frame_is_lost_and_the_next_view_relocalises() {
                 keypoints: Vec::new(),
                 descriptors: Descriptors::Binary256(Vec::new()),
                 points: Some(Vec::new()),
+                sampler: None,
             }
         } else if i == 8 {
             // Back to an early viewpoint: a jump no motion model predicts.
