@@ -66,12 +66,12 @@ impl UprightSampler {
         for sy in 0..4 {
             for sx in 0..4 {
                 let mut acc = [0f32; 4];
-                for j in 5 * sy..5 * sy + 5 {
-                    let row = rows[j] * self.w;
-                    for i in 5 * sx..5 * sx + 5 {
+                for (j, &r) in rows.iter().enumerate().skip(5 * sy).take(5) {
+                    let row = r * self.w;
+                    for (i, &c) in cols.iter().enumerate().skip(5 * sx).take(5) {
                         let wt = self.weights[j * 20 + i];
-                        let du = wt * self.rx[row + cols[i]];
-                        let dv = wt * self.ry[row + cols[i]];
+                        let du = wt * self.rx[row + c];
+                        let dv = wt * self.ry[row + c];
                         acc[0] += du;
                         acc[1] += dv;
                         acc[2] += du.abs();
