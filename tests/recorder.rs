@@ -133,6 +133,7 @@ fn all_payloads() -> Vec<(&'static str, Payload)> {
                 weights: vec![1.0],
                 timestamps: vec![0],
                 stability: vec![1.0],
+                ids: vec![0],
             })),
         ),
         (

@@ -447,6 +447,9 @@ pub struct SurfelModel {
     pub timestamps: Vec<u64>,
     /// Stability s_i.
     pub stability: Vec<f32>,
+    /// Identity of each surfel, unique within a run and kept while it lives (evaluations follow
+    /// surfels over frames by it); empty when the producer gives none.
+    pub ids: Vec<u64>,
 }
 
 /// A triangle mesh.

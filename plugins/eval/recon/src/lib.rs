@@ -7,6 +7,16 @@
 //! | `recon.rms_mm` | root mean square of those distances, mm |
 //! | `recon.p95_mm` | 95th percentile (nearest rank), mm |
 //!
+//! | `recon.drift_mm` | material drift of the surfels (with `rest_points_gt` and `depth_gt`), mm |
+//!
+//! Material drift follows each surfel of a model (by its id) over the frames: where it projects
+//! in the camera (scope-relative: through the estimated pose) onto the true surface, the rest
+//! shape point the true camera sees there is the tissue the surfel stands for. The first frame
+//! that sees it fixes that tissue point; later frames report how far, in the rest shape, the
+//! tissue under it has moved away from it: the tangential sliding that a surface distance cannot
+//! see. A surfel is scored where its depth is within `drift_max_depth_gap_mm` of the true depth
+//! at its pixel (in front of the surface, not behind a fold).
+//!
 //! Distances are exact point-to-triangle distances (a uniform grid over the GT triangles finds
 //! the nearest one). Both inputs must be in the same frame (world). The points, coloured by
 //! their error (blue 0 to red `color_max_mm`), go out on `colored` for the Rerun viewer.
@@ -15,8 +25,9 @@
 use misslam_framework::metrics::FrameMeans;
 use misslam_framework::nalgebra::{Isometry3, Point3};
 use misslam_framework::{
-    BuildContext, BuildError, Flow, FrameInfo, Inputs, Mesh, Node, NodeContext, NodeError,
-    NodeResult, Outputs, PointCloud, PortSpec, PortType, Pose, Registry, SurfelModel, TypedPlugin,
+    BuildContext, BuildError, DepthMap, Flow, FrameInfo, Inputs, Mesh, Node, NodeContext,
+    NodeError, NodeResult, Outputs, PointCloud, PortSpec, PortType, Pose, Registry, SurfelModel,
+    TypedPlugin, VertexMap,
 };
 use rayon::prelude::*;
 
@@ -28,6 +39,9 @@ pub struct Params {
     pub color_max_mm: f32,
     /// Prefix of the keys (`recon` gives `recon.mean_mm`).
     pub prefix: String,
+    /// Material drift: a surfel is scored where its depth is within this of the true depth at its
+    /// pixel, mm.
+    pub drift_max_depth_gap_mm: f32,
 }
 
 impl Default for Params {
@@ -35,8 +49,97 @@ impl Default for Params {
         Params {
             color_max_mm: 2.0,
             prefix: "recon".into(),
+            drift_max_depth_gap_mm: 1.0,
         }
     }
+}
+
+/// The material drift of surfels followed by id (see the module doc).
+#[derive(Default)]
+pub struct Drift {
+    /// The rest-shape point under each surfel when first scored.
+    first: std::collections::HashMap<u64, V3>,
+}
+
+impl Drift {
+    /// Scores one frame: `camera` the surfels in the camera frame (scope-relative), `ids`
+    /// theirs, the true depth and rest-shape points of the view. Returns the mean drift over the
+    /// surfels scored before (None when there are none yet).
+    pub fn frame(
+        &mut self,
+        camera: &[V3],
+        ids: &[u64],
+        depth: &DepthMap,
+        rest: &VertexMap,
+        max_gap: f32,
+    ) -> Result<Option<f64>, String> {
+        let (w, h) = (depth.map.width as usize, depth.map.height as usize);
+        if depth.map.data.len() != w * h
+            || (rest.width, rest.height) != (depth.map.width, depth.map.height)
+            || rest.points.len() != w * h
+        {
+            return Err(format!(
+                "depth_gt ({w}x{h}) and rest_points_gt ({}x{}) do not describe one view",
+                rest.width, rest.height
+            ));
+        }
+        if ids.len() != camera.len() {
+            return Err(format!(
+                "the model has {} ids for {} surfels",
+                ids.len(),
+                camera.len()
+            ));
+        }
+        let c = &depth.calib;
+        let (mut sum, mut n) = (0.0f64, 0usize);
+        for (p, id) in camera.iter().zip(ids) {
+            if !(p[2] > 0.0) {
+                continue;
+            }
+            let u = (c.fx * p[0] as f64 / p[2] as f64 + c.cx) as f32;
+            let v = (c.fy * p[1] as f64 / p[2] as f64 + c.cy) as f32;
+            if !(u >= 0.0 && v >= 0.0 && (u as usize) + 1 < w && (v as usize) + 1 < h) {
+                continue;
+            }
+            let z = depth.map.data[v.round() as usize * w + u.round() as usize];
+            if !((p[2] - z).abs() <= max_gap) {
+                continue;
+            }
+            let Some(r) = bilinear(&rest.points, w, u, v) else {
+                continue;
+            };
+            match self.first.get(id) {
+                Some(r0) => {
+                    sum += dot(sub(r, *r0), sub(r, *r0)).sqrt() as f64;
+                    n += 1;
+                }
+                None => {
+                    self.first.insert(*id, r);
+                }
+            }
+        }
+        Ok((n > 0).then(|| sum / n as f64))
+    }
+}
+
+/// `points` (a row-major map of width `w`) at sub-pixel (x, y), between the four pixels around
+/// it; None where one is not finite.
+fn bilinear(points: &[V3], w: usize, x: f32, y: f32) -> Option<V3> {
+    let (x0, y0) = (x as usize, y as usize);
+    let (fx, fy) = (x - x0 as f32, y - y0 as f32);
+    let mut out = [0f32; 3];
+    for (dx, dy, wgt) in [
+        (0, 0, (1.0 - fx) * (1.0 - fy)),
+        (1, 0, fx * (1.0 - fy)),
+        (0, 1, (1.0 - fx) * fy),
+        (1, 1, fx * fy),
+    ] {
+        let q = points.get((y0 + dy) * w + x0 + dx)?;
+        for k in 0..3 {
+            out[k] += wgt * q[k];
+        }
+    }
+    out.iter().all(|c| c.is_finite()).then_some(out)
 }
 
 type V3 = [f32; 3];
@@ -317,6 +420,7 @@ fn error_color(d: f32, max: f32) -> [u8; 3] {
 pub struct EvalRecon {
     params: Params,
     means: FrameMeans,
+    drift: Drift,
 }
 
 impl Node for EvalRecon {
@@ -328,7 +432,8 @@ impl Node for EvalRecon {
         outputs: &mut Outputs,
     ) -> NodeResult<Flow> {
         let gt = inputs.get::<Mesh>("mesh_gt")?;
-        let world_points: &[V3] = if let Some(m) = inputs.opt::<SurfelModel>("model")? {
+        let model = inputs.opt::<SurfelModel>("model")?;
+        let world_points: &[V3] = if let Some(m) = model {
             &m.positions
         } else if let Some(pc) = inputs.opt::<PointCloud>("points")? {
             &pc.positions
@@ -360,11 +465,43 @@ impl Node for EvalRecon {
         };
         let (s, dist) = score(points, gt).map_err(NodeError::msg)?;
         let k = |name: &str| format!("{}.{name}", self.params.prefix);
-        let m = self.means.add([
+        let mut values = vec![
             (k("mean_mm"), s.mean_mm),
             (k("rms_mm"), s.rms_mm),
             (k("p95_mm"), s.p95_mm),
-        ]);
+        ];
+        let rest = inputs.opt::<VertexMap>("rest_points_gt")?;
+        let depth = inputs.opt::<DepthMap>("depth_gt")?;
+        if let (Some(m), Some(rest), Some(depth)) = (model, rest, depth) {
+            let Some(e) = pose else {
+                return Err(NodeError::msg(
+                    "material drift (`rest_points_gt`, `depth_gt`) needs `pose` and `pose_gt`",
+                ));
+            };
+            let cfw = e.world_from_camera.inverse();
+            let camera: Vec<V3> = m
+                .positions
+                .iter()
+                .map(|p| {
+                    let q = cfw * Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+                    [q.x as f32, q.y as f32, q.z as f32]
+                })
+                .collect();
+            let d = self
+                .drift
+                .frame(
+                    &camera,
+                    &m.ids,
+                    depth,
+                    rest,
+                    self.params.drift_max_depth_gap_mm,
+                )
+                .map_err(NodeError::msg)?;
+            if let Some(d) = d {
+                values.push((k("drift_mm"), d));
+            }
+        }
+        let m = self.means.add(values);
         outputs.put("metrics", m)?;
         outputs.put(
             "colored",
@@ -410,6 +547,16 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
                 PortType::Mesh,
                 "mesh (its vertices are scored), world frame",
             ),
+            PortSpec::optional(
+                "rest_points_gt",
+                PortType::VertexMap,
+                "per pixel, the rest-shape point the true camera sees: with `depth_gt`, a model's material drift",
+            ),
+            PortSpec::optional(
+                "depth_gt",
+                PortType::Depth,
+                "the true depth of the view, for the material drift",
+            ),
         ],
         vec![
             PortSpec::new("metrics", PortType::Metrics, "the frame's figures"),
@@ -427,9 +574,13 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
                     message: "must be positive".into(),
                 });
             }
+            if p.drift_max_depth_gap_mm.is_nan() || p.drift_max_depth_gap_mm <= 0.0 {
+                return Err(BuildError::param("drift_max_depth_gap_mm", "must be positive"));
+            }
             Ok(EvalRecon {
                 params: p,
                 means: FrameMeans::default(),
+                drift: Drift::default(),
             })
         },
     ))
@@ -461,6 +612,71 @@ mod tests {
             triangles,
             ..Default::default()
         }
+    }
+
+    #[test]
+    fn material_drift_follows_surfels_by_id() {
+        use misslam_framework::{FloatMap, StereoCalib};
+        // A camera 50 mm in front of a plane whose pixel (u, v) sees rest point (u, v, 0) / 10.
+        let (w, h) = (40u32, 30u32);
+        let calib = StereoCalib {
+            width: w,
+            height: h,
+            fx: 100.0,
+            fy: 100.0,
+            cx: 20.0,
+            cy: 15.0,
+            cx_right: 20.0,
+            baseline_mm: 5.0,
+        };
+        let depth = DepthMap {
+            map: FloatMap {
+                width: w,
+                height: h,
+                data: vec![50.0; (w * h) as usize],
+            },
+            calib,
+        };
+        let rest = VertexMap {
+            width: w,
+            height: h,
+            points: (0..w * h)
+                .map(|i| [(i % w) as f32 * 0.1, (i / w) as f32 * 0.1, 0.0])
+                .collect(),
+        };
+        // The camera-frame point that projects to pixel (u, v) at depth z.
+        let at = |u: f32, v: f32, z: f32| [(u - 20.0) * z / 100.0, (v - 15.0) * z / 100.0, z];
+        let mut d = Drift::default();
+        // Frame 1 only fixes the tissue under each surfel.
+        let f1 = [
+            at(10.0, 10.0, 50.0),
+            at(30.0, 20.0, 50.0),
+            at(5.0, 5.0, 55.0),
+        ];
+        assert_eq!(d.frame(&f1, &[1, 2, 3], &depth, &rest, 1.0).unwrap(), None);
+        // Frame 2: surfel 1 slid 2 px (0.2 mm of tissue) and 1.5 px down, surfel 2 stayed;
+        // surfel 3 is 5 mm behind the surface and was never scored; 4 is new; 5 is out of view.
+        let f2 = [
+            at(12.0, 11.5, 50.0),
+            at(30.0, 20.0, 50.0),
+            at(5.0, 5.0, 55.0),
+            at(7.0, 7.0, 50.0),
+            at(45.0, 7.0, 50.0),
+        ];
+        let m = d
+            .frame(&f2, &[1, 2, 3, 4, 5], &depth, &rest, 1.0)
+            .unwrap()
+            .unwrap();
+        let want = (0.2f64.powi(2) + 0.15f64.powi(2)).sqrt() / 2.0;
+        assert!((m - want).abs() < 1e-5, "{m} vs {want}");
+        // Ids that do not match the surfels, and maps of another size, are errors.
+        assert!(d.frame(&f2, &[1], &depth, &rest, 1.0).is_err());
+        let small = VertexMap {
+            width: 4,
+            height: 3,
+            points: vec![[0.0; 3]; 12],
+        };
+        assert!(d.frame(&f2, &[1, 2, 3, 4, 5], &depth, &small, 1.0).is_err());
     }
 
     #[test]

@@ -121,6 +121,18 @@ pub struct AnchorScratch {
     world: Vec<Vector3<f64>>,
 }
 
+/// The depth's vertex map (camera frame, `intrinsics.width` x `intrinsics.height`), from which
+/// dense keypoints take their 3D points, and the largest depth step between the four pixels
+/// around a point, mm.
+pub struct DepthPoints<'a> {
+    /// Row-major points, NaN where invalid.
+    pub vertices: &'a [[f32; 3]],
+    /// The map's camera.
+    pub intrinsics: Intrinsics,
+    /// Largest depth difference between the four pixels a point is read from, mm.
+    pub max_step_mm: f64,
+}
+
 /// Key of grid cell (x, y, z) (21 bits each, offset so small negative cells stay positive); x
 /// varies fastest, so the three cells x - 1..=x + 1 of a row are consecutive keys.
 fn cell_key(c: [i64; 3]) -> u64 {
@@ -142,6 +154,7 @@ pub fn anchor(
     bindings: &[Binding],
     local_inverse: impl Fn(usize) -> Matrix3<f64>,
     radius: f64,
+    depth: Option<DepthPoints>,
     scratch: &mut AnchorScratch,
 ) -> Anchors {
     let mut out = Anchors::default();
@@ -150,11 +163,16 @@ pub fn anchor(
     };
     let AnchorScratch { cells, world } = scratch;
     world.clear();
-    world.extend(
-        points
-            .iter()
-            .map(|q| (pose * Point3::new(q[0] as f64, q[1] as f64, q[2] as f64)).coords),
-    );
+    // Dense descriptors take their points from the depth, as their refined matches do.
+    let depth = depth.filter(|_| features.sampler.is_some());
+    world.extend(points.iter().zip(&features.keypoints).map(|(q, kp)| {
+        let c = match &depth {
+            Some(d) => vertex_at(d.vertices, &d.intrinsics, [kp.x, kp.y], d.max_step_mm)
+                .unwrap_or(Vector3::repeat(f64::NAN)),
+            None => Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64),
+        };
+        (pose * Point3::from(c)).coords
+    }));
     let (mut lo, mut hi) = (
         Vector3::repeat(f64::INFINITY),
         Vector3::repeat(f64::NEG_INFINITY),
@@ -424,6 +442,7 @@ mod tests {
             &bindings,
             |_| a_inv,
             1.0,
+            None,
             &mut scratch,
         );
         assert_eq!(a.len(), 3);
@@ -449,6 +468,7 @@ mod tests {
             &bindings,
             |_| Matrix3::zeros(),
             1.0,
+            None,
             &mut scratch,
         );
         let mut found = 0;

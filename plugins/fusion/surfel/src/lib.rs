@@ -164,6 +164,9 @@ struct Model {
     seen: Vec<u64>,
     stability: Vec<f32>,
     bindings: Vec<Binding>,
+    /// Each surfel's identity, and the next one to give.
+    ids: Vec<u64>,
+    next_id: u64,
 }
 
 impl Model {
@@ -188,6 +191,8 @@ impl Model {
         self.seen.push(frame);
         self.stability.push(0.0);
         self.bindings.push(b);
+        self.ids.push(self.next_id);
+        self.next_id += 1;
     }
 
     fn retain(&mut self, keep: &[bool]) {
@@ -206,6 +211,7 @@ impl Model {
         filter(&mut self.seen, keep);
         filter(&mut self.stability, keep);
         filter(&mut self.bindings, keep);
+        filter(&mut self.ids, keep);
     }
 }
 
@@ -624,6 +630,11 @@ impl SurfelNode {
                     &m.bindings,
                     |s| local_inverses(&m.bindings[s], &nm).0,
                     self.p.correspondences.anchor_distance_mm,
+                    (self.p.correspondences.refine_steps > 0).then_some(corr::DepthPoints {
+                        vertices: &self.vertices,
+                        intrinsics: k,
+                        max_step_mm: self.p.correspondences.refine_max_step_mm,
+                    }),
                     &mut self.anchor_scratch,
                 )
             }
@@ -647,6 +658,7 @@ impl SurfelNode {
                 weights: m.weights.clone(),
                 timestamps: m.seen.clone(),
                 stability: m.stability.clone(),
+                ids: m.ids.clone(),
             },
         )?;
         outputs.put("graph", graph.to_payload())?;
