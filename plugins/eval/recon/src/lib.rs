@@ -93,7 +93,7 @@ impl Drift {
         let c = &depth.calib;
         let (mut sum, mut n) = (0.0f64, 0usize);
         for (p, id) in camera.iter().zip(ids) {
-            if !(p[2] > 0.0) {
+            if p[2].is_nan() || p[2] <= 0.0 {
                 continue;
             }
             let u = (c.fx * p[0] as f64 / p[2] as f64 + c.cx) as f32;
@@ -102,7 +102,8 @@ impl Drift {
                 continue;
             }
             let z = depth.map.data[v.round() as usize * w + u.round() as usize];
-            if !((p[2] - z).abs() <= max_gap) {
+            let gap = (p[2] - z).abs();
+            if gap.is_nan() || gap > max_gap {
                 continue;
             }
             let Some(r) = bilinear(&rest.points, w, u, v) else {
