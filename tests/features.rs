@@ -520,28 +520,13 @@ fn orb_keypoints_turn_with_the_image_at_every_level() {
     }
 }
 
-/// The rest-shape point seen at sub-pixel (x, y) of a phantom frame, bilinear between the four
-/// pixels around it (None where one sees no tissue).
+/// The rest-shape point seen at sub-pixel (x, y) of a phantom frame (None where one of the four
+/// pixels around it sees no tissue).
 fn rest_point_at(rest: &misslam::framework::VertexMap, x: f32, y: f32) -> Option<[f32; 3]> {
-    let w = rest.width as usize;
-    if !(x >= 0.0 && y >= 0.0) || x as usize + 1 >= w || y as usize + 1 >= rest.height as usize {
+    if !(x >= 0.0 && y >= 0.0) {
         return None;
     }
-    let (x0, y0) = (x as usize, y as usize);
-    let (fx, fy) = (x - x0 as f32, y - y0 as f32);
-    let mut out = [0f32; 3];
-    for (dx, dy, wgt) in [
-        (0, 0, (1.0 - fx) * (1.0 - fy)),
-        (1, 0, fx * (1.0 - fy)),
-        (0, 1, (1.0 - fx) * fy),
-        (1, 1, fx * fy),
-    ] {
-        let p = rest.points[(y0 + dy) * w + x0 + dx];
-        for c in 0..3 {
-            out[c] += wgt * p[c];
-        }
-    }
-    out.iter().all(|c| c.is_finite()).then_some(out)
+    misslam_eval_recon::bilinear(&rest.points, rest.width as usize, x, y)
 }
 
 #[test]

@@ -123,10 +123,13 @@ impl Drift {
     }
 }
 
-/// `points` (a row-major map of width `w`) at sub-pixel (x, y), between the four pixels around
-/// it; None where one is not finite.
-fn bilinear(points: &[V3], w: usize, x: f32, y: f32) -> Option<V3> {
+/// `points` (a row-major map of width `w`) at sub-pixel (x, y) (non-negative), between the four
+/// pixels around it; None where one is missing or not finite.
+pub fn bilinear(points: &[V3], w: usize, x: f32, y: f32) -> Option<V3> {
     let (x0, y0) = (x as usize, y as usize);
+    if x0 + 1 >= w {
+        return None;
+    }
     let (fx, fy) = (x - x0 as f32, y - y0 as f32);
     let mut out = [0f32; 3];
     for (dx, dy, wgt) in [
