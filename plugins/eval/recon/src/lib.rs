@@ -7,9 +7,10 @@
 //! | `recon.rms_mm` | root mean square of those distances, mm |
 //! | `recon.p95_mm` | 95th percentile (nearest rank), mm |
 //!
-//! | `recon.drift_mm` | material drift of the surfels (with `rest_points_gt` and `depth_gt`), mm |
+//! | `recon.drift_mm` | material drift of the surfels or mesh vertices (with `rest_points_gt` and `depth_gt`), mm |
 //!
-//! Material drift follows each surfel of a model (by its id) over the frames: where it projects
+//! Material drift follows each surfel of a model (by its id), or each vertex of a mesh (by its
+//! index: a deformed template), over the frames: where it projects
 //! in the camera (scope-relative: through the estimated pose) onto the true surface, the rest
 //! shape point the true camera sees there is the tissue the surfel stands for. The first frame
 //! that sees it fixes that tissue point; later frames report how far, in the rest shape, the
@@ -476,15 +477,25 @@ impl Node for EvalRecon {
         ];
         let rest = inputs.opt::<VertexMap>("rest_points_gt")?;
         let depth = inputs.opt::<DepthMap>("depth_gt")?;
-        if let (Some(m), Some(rest), Some(depth)) = (model, rest, depth) {
+        // What keeps its identity over frames: a model's surfels by id, a mesh's vertices by
+        // index (a deformed template); a point cloud has none.
+        let followed: Option<(&[V3], std::borrow::Cow<[u64]>)> = match model {
+            Some(m) => Some((&m.positions, (&m.ids[..]).into())),
+            None => inputs.opt::<Mesh>("mesh")?.map(|mesh| {
+                (
+                    &mesh.vertices[..],
+                    (0..mesh.vertices.len() as u64).collect(),
+                )
+            }),
+        };
+        if let (Some((positions, ids)), Some(rest), Some(depth)) = (followed, rest, depth) {
             let Some(e) = pose else {
                 return Err(NodeError::msg(
                     "material drift (`rest_points_gt`, `depth_gt`) needs `pose` and `pose_gt`",
                 ));
             };
             let cfw = e.world_from_camera.inverse();
-            let camera: Vec<V3> = m
-                .positions
+            let camera: Vec<V3> = positions
                 .iter()
                 .map(|p| {
                     let q = cfw * Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
@@ -495,7 +506,7 @@ impl Node for EvalRecon {
                 .drift
                 .frame(
                     &camera,
-                    &m.ids,
+                    &ids,
                     depth,
                     rest,
                     self.params.drift_max_depth_gap_mm,
