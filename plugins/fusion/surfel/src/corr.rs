@@ -124,6 +124,23 @@ pub struct AnchorScratch {
     world: Vec<Vector3<f64>>,
 }
 
+/// The warp's local linear part at a binding, as the pair (A^-1, A^T) derived from the blended
+/// normal matrices A^-T: A^-1 maps a live displacement back to the canonical frame, A^T maps a
+/// live normal back.
+pub fn local_inverses(b: &Binding, nm: &[Matrix3<f64>]) -> (Matrix3<f64>, Matrix3<f64>) {
+    if b.len == 0 {
+        return (Matrix3::identity(), Matrix3::identity());
+    }
+    let mut m = Matrix3::zeros();
+    for (j, w) in b.iter() {
+        m += w * nm[j as usize];
+    }
+    (
+        m.transpose(),
+        m.try_inverse().unwrap_or_else(Matrix3::identity),
+    )
+}
+
 /// The depth's vertex map (camera frame, `intrinsics.width` x `intrinsics.height`), from which
 /// dense keypoints take their 3D points, and the largest depth step between the four pixels
 /// around a point, mm.

@@ -31,7 +31,7 @@ use misslam_deformation_ed::observe::{
 };
 use misslam_deformation_ed::problem::{Intrinsics, ModelSubset, Problem, Scan, SolverParams};
 use misslam_framework::geometry::{arr3, vec3};
-use misslam_framework::nalgebra::{Isometry3, Matrix3, Point3, Vector3};
+use misslam_framework::nalgebra::{Isometry3, Point3, Vector3};
 use misslam_framework::{
     BuildContext, BuildError, DepthMap, Features, Flow, FrameInfo, Image, Inputs, Metrics, Node,
     NodeContext, NodeError, NodeResult, Outputs, PortSpec, PortType, Pose, Registry, StereoFrame,
@@ -39,6 +39,7 @@ use misslam_framework::{
 };
 use rayon::prelude::*;
 
+use corr::local_inverses;
 pub use corr::CorrParams;
 pub use misslam_deformation_ed::engine::SolverKind;
 
@@ -267,23 +268,6 @@ pub struct SurfelNode {
 /// pose (or the warp) no longer puts the model where the depth is, and the model fills with
 /// duplicates; it is warned about and counted (`fusion.disagreeing_frames` in `metrics.json`).
 pub const DISAGREE_MIN_SAMPLES: usize = 100;
-
-/// The warp's local linear part at a binding, as the pair (A^-1, A^T) derived from the blended
-/// normal matrices A^-T: A^-1 maps a live displacement back to the canonical frame, A^T maps a
-/// live normal back.
-fn local_inverses(b: &Binding, nm: &[Matrix3<f64>]) -> (Matrix3<f64>, Matrix3<f64>) {
-    if b.len == 0 {
-        return (Matrix3::identity(), Matrix3::identity());
-    }
-    let mut m = Matrix3::zeros();
-    for (j, w) in b.iter() {
-        m += w * nm[j as usize];
-    }
-    (
-        m.transpose(),
-        m.try_inverse().unwrap_or_else(Matrix3::identity),
-    )
-}
 
 impl SurfelNode {
     #[allow(clippy::too_many_arguments)]
@@ -783,6 +767,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use misslam_framework::nalgebra::Matrix3;
 
     #[test]
     fn local_inverses_undo_an_affine_warp() {

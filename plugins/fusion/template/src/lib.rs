@@ -33,10 +33,11 @@ use misslam_deformation_ed::DistanceField;
 use misslam_framework::geometry::arr3;
 use misslam_framework::nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use misslam_framework::{
-    BuildContext, BuildError, DepthMap, Device, Flow, FrameInfo, GpuContext, Image, Inputs, Mesh,
-    Metrics, Node, NodeContext, NodeError, NodeResult, Outputs, PointCloud, PortSpec, PortType,
-    Pose, Registry, StereoFrame, TrackingState, TypedPlugin,
+    BuildContext, BuildError, DepthMap, Device, Features, Flow, FrameInfo, GpuContext, Image,
+    Inputs, Mesh, Metrics, Node, NodeContext, NodeError, NodeResult, Outputs, PointCloud, PortSpec,
+    PortType, Pose, Registry, StereoFrame, TrackingState, TypedPlugin,
 };
+use misslam_fusion_surfel::corr::{self, local_inverses, CorrParams};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
@@ -164,6 +165,9 @@ pub struct Params {
     pub visible_angle_deg: f64,
     /// Colour the template from the left image (when the `stereo` input is connected).
     pub color: bool,
+    /// Sparse correspondences (E_corr) from the `features` input: keypoints anchored to the
+    /// deformed template at the end of a frame and matched on the next (as in `fusion.surfel`).
+    pub correspondences: CorrParams,
 }
 
 impl Default for Params {
@@ -181,6 +185,7 @@ impl Default for Params {
             visible_distance_mm: 5.0,
             visible_angle_deg: 60.0,
             color: true,
+            correspondences: CorrParams::default(),
         }
     }
 }
@@ -207,6 +212,9 @@ impl Params {
             return Err(BuildError::param("field.max_voxels", "must be at least 1"));
         }
         positive(self.align.truncation_mm, "align.truncation_mm")?;
+        self.correspondences
+            .validate()
+            .map_err(|m| BuildError::param("correspondences", m))?;
         positive(self.align.voxel_mm, "align.voxel_mm")?;
         positive(self.align.huber_mm, "align.huber_mm")?;
         if self.align.iterations == 0 && self.align.mode == AlignMode::Icp {
@@ -279,6 +287,10 @@ pub struct TemplateNode {
     align_rms: Option<(f64, f64)>,
     /// The GPU field kernel, with `field.device` = "gpu" (or "auto" with an adapter).
     gpu: Option<(Arc<GpuContext>, DffKernel)>,
+    /// The previous frame's keypoints anchored to the template (E_corr), and buffers.
+    anchors: corr::Anchors,
+    anchor_scratch: corr::AnchorScratch,
+    refine_scratch: misslam_features_matching::dense::RefineScratch,
 }
 
 /// Reads a template file into a mesh with normals.
@@ -450,6 +462,9 @@ impl TemplateNode {
             .map(|p| p.left.as_ref())
             .filter(|im| self.p.color && im.width as usize == w && im.height as usize == h);
         let prior = inputs.opt::<Pose>("pose")?;
+        let features = inputs
+            .opt::<Features>("features")?
+            .filter(|_| self.p.correspondences.enabled);
         let mut pose = prior.map_or(Isometry3::identity(), |p| p.world_from_camera);
         let lost = prior.is_some_and(|p| p.state == TrackingState::Lost);
         scan_from_depth_into(
@@ -537,6 +552,22 @@ impl TemplateNode {
             };
             self.subset
                 .gather(&visible, &model.points, &model.normals, &model.bindings);
+            let corrs = match features {
+                Some(f) => corr::correspondences(
+                    f,
+                    &self.anchors,
+                    &pose,
+                    &k,
+                    &self.vertices,
+                    &self.p.correspondences,
+                    &mut self.refine_scratch,
+                )
+                .map_err(|e| NodeError::msg(format!("frame {}: {e}", frame.index)))?,
+                None => Vec::new(),
+            };
+            metrics
+                .values
+                .insert("template.correspondences".into(), corrs.len() as f64);
             let problem = Problem {
                 model: self.subset.view(),
                 scan: match self.p.data_term {
@@ -548,7 +579,7 @@ impl TemplateNode {
                     DataTerm::Dff => None,
                 },
                 field: field.as_ref(),
-                correspondences: &[],
+                correspondences: &corrs,
                 pose_prior: pose,
             };
             let (info, split) = self
@@ -590,6 +621,29 @@ impl TemplateNode {
             &mut live,
             &mut live_n,
         );
+        // This frame's keypoints anchored to the deformed template for the next frame's
+        // correspondences (none after a lost frame).
+        self.anchors = match features {
+            Some(f) if !lost => {
+                let nm = model.graph.normal_matrices();
+                corr::anchor(
+                    f,
+                    &pose,
+                    &live,
+                    &model.points,
+                    &model.bindings,
+                    |s| local_inverses(&model.bindings[s], &nm).0,
+                    self.p.correspondences.anchor_distance_mm,
+                    (self.p.correspondences.refine_steps > 0).then_some(corr::DepthPoints {
+                        vertices: &self.vertices,
+                        intrinsics: k,
+                        max_step_mm: self.p.correspondences.refine_max_step_mm,
+                    }),
+                    &mut self.anchor_scratch,
+                )
+            }
+            _ => corr::Anchors::default(),
+        };
         if let Some(img) = left {
             let cfw = pose.inverse();
             for &i in &visible {
@@ -722,6 +776,9 @@ pub fn build(p: Params, ctx: &BuildContext) -> Result<TemplateNode, BuildError> 
         scan_normals: Vec::new(),
         align_rms: None,
         gpu,
+        anchors: corr::Anchors::default(),
+        anchor_scratch: corr::AnchorScratch::default(),
+        refine_scratch: Default::default(),
     })
 }
 
@@ -745,6 +802,11 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
                 "pose",
                 PortType::Pose,
                 "world_from_camera from the tracker (prior); a lost frame is not deformed",
+            ),
+            PortSpec::optional(
+                "features",
+                PortType::Features,
+                "keypoints with descriptors and camera-frame 3D points (features.orb / features.surf): matched frame to frame into E_corr constraints (`correspondences`)",
             ),
             PortSpec::optional(
                 "template",
