@@ -21,7 +21,7 @@
 //! the node affines). On the phantom heart (6 px grid, 320x240) refinement takes the mean
 //! distance between an anchor's tissue point and its match's from 0.42 to 0.08 mm.
 
-use misslam_deformation_ed::graph::Binding;
+use misslam_deformation_ed::graph::{Binding, EdGraph};
 use misslam_deformation_ed::problem::Correspondence;
 use misslam_deformation_ed::problem::Intrinsics;
 use misslam_features_matching::dense::{refine_match, RefineScratch};
@@ -122,6 +122,75 @@ impl Anchors {
 pub struct AnchorScratch {
     cells: Vec<(u64, u32)>,
     world: Vec<Vector3<f64>>,
+}
+
+/// What a fusion node keeps between frames for E_corr: the last frame's anchors and the buffers.
+#[derive(Default)]
+pub struct CorrTracker {
+    anchors: Anchors,
+    anchor_scratch: AnchorScratch,
+    refine: RefineScratch,
+}
+
+impl CorrTracker {
+    /// This frame's correspondences against the last frame's anchors (see [`correspondences`]);
+    /// the error names `frame`.
+    pub fn correspondences(
+        &mut self,
+        frame: u64,
+        features: Option<&Features>,
+        prior: &Isometry3<f64>,
+        k: &Intrinsics,
+        vertices: &[[f32; 3]],
+        p: &CorrParams,
+    ) -> Result<Vec<Correspondence>, String> {
+        match features {
+            Some(f) => correspondences(f, &self.anchors, prior, k, vertices, p, &mut self.refine)
+                .map_err(|e| format!("frame {frame}: {e}")),
+            None => Ok(Vec::new()),
+        }
+    }
+
+    /// Anchors this frame's keypoints to the deformed model (`live`, world frame, of the
+    /// canonical points `canon` bound by `bindings` to `graph`) for the next frame; none after a
+    /// lost frame, whose pose is not the scope's. Dense keypoints take their points from
+    /// `vertices` (see [`DepthPoints`]).
+    #[allow(clippy::too_many_arguments)]
+    pub fn anchor(
+        &mut self,
+        features: Option<&Features>,
+        lost: bool,
+        pose: &Isometry3<f64>,
+        live: &[Vector3<f64>],
+        canon: &[Vector3<f64>],
+        bindings: &[Binding],
+        graph: &EdGraph,
+        vertices: &[[f32; 3]],
+        k: &Intrinsics,
+        p: &CorrParams,
+    ) {
+        self.anchors = match features {
+            Some(f) if !lost => {
+                let nm = graph.normal_matrices();
+                anchor(
+                    f,
+                    pose,
+                    live,
+                    canon,
+                    bindings,
+                    |s| local_inverses(&bindings[s], &nm).0,
+                    p.anchor_distance_mm,
+                    (p.refine_steps > 0).then_some(DepthPoints {
+                        vertices,
+                        intrinsics: *k,
+                        max_step_mm: p.refine_max_step_mm,
+                    }),
+                    &mut self.anchor_scratch,
+                )
+            }
+            _ => Anchors::default(),
+        };
+    }
 }
 
 /// The warp's local linear part at a binding, as the pair (A^-1, A^T) derived from the blended

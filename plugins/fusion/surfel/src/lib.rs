@@ -255,9 +255,7 @@ pub struct SurfelNode {
     /// Whether the previous frame disagreed (one warning per run of such frames).
     disagreeing: bool,
     /// The previous frame's keypoints anchored to the model (E_corr).
-    anchors: corr::Anchors,
-    anchor_scratch: corr::AnchorScratch,
-    refine_scratch: misslam_features_matching::dense::RefineScratch,
+    corr: corr::CorrTracker,
     /// Solves run, and the correspondences they used (for `metrics.json`).
     solves: u64,
     corr_used: u64,
@@ -367,19 +365,17 @@ impl SurfelNode {
             );
             self.subset
                 .gather(&visible, &m.canon, &m.normals, &m.bindings);
-            let corrs = match features {
-                Some(f) => corr::correspondences(
-                    f,
-                    &self.anchors,
+            let corrs = self
+                .corr
+                .correspondences(
+                    frame.index,
+                    features,
                     &pose,
                     &k,
                     &self.vertices,
                     &self.p.correspondences,
-                    &mut self.refine_scratch,
                 )
-                .map_err(|e| NodeError::msg(format!("frame {}: {e}", frame.index)))?,
-                None => Vec::new(),
-            };
+                .map_err(NodeError::msg)?;
             metrics
                 .values
                 .insert("fusion.correspondences".into(), corrs.len() as f64);
@@ -603,27 +599,18 @@ impl SurfelNode {
         );
         // This frame's keypoints anchored for the next frame's correspondences (none after a
         // lost frame: its pose is not the scope's).
-        self.anchors = match features {
-            Some(f) if !lost => {
-                let nm = graph.normal_matrices();
-                corr::anchor(
-                    f,
-                    &pose,
-                    &live,
-                    &m.canon,
-                    &m.bindings,
-                    |s| local_inverses(&m.bindings[s], &nm).0,
-                    self.p.correspondences.anchor_distance_mm,
-                    (self.p.correspondences.refine_steps > 0).then_some(corr::DepthPoints {
-                        vertices: &self.vertices,
-                        intrinsics: k,
-                        max_step_mm: self.p.correspondences.refine_max_step_mm,
-                    }),
-                    &mut self.anchor_scratch,
-                )
-            }
-            _ => corr::Anchors::default(),
-        };
+        self.corr.anchor(
+            features,
+            lost,
+            &pose,
+            &live,
+            &m.canon,
+            &m.bindings,
+            graph,
+            &self.vertices,
+            &k,
+            &self.p.correspondences,
+        );
         for (key, v) in [
             ("fusion.surfels", m.len() as f64),
             ("fusion.nodes", graph.len() as f64),
@@ -719,9 +706,7 @@ pub fn build(p: Params, _: &BuildContext) -> Result<SurfelNode, BuildError> {
         scan_normals: Vec::new(),
         disagreed: 0,
         disagreeing: false,
-        anchors: corr::Anchors::default(),
-        anchor_scratch: corr::AnchorScratch::default(),
-        refine_scratch: Default::default(),
+        corr: corr::CorrTracker::default(),
         solves: 0,
         corr_used: 0,
     })

@@ -37,7 +37,7 @@ use misslam_framework::{
     Inputs, Mesh, Metrics, Node, NodeContext, NodeError, NodeResult, Outputs, PointCloud, PortSpec,
     PortType, Pose, Registry, StereoFrame, TrackingState, TypedPlugin,
 };
-use misslam_fusion_surfel::corr::{self, local_inverses, CorrParams};
+use misslam_fusion_surfel::corr::{self, CorrParams};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
@@ -288,9 +288,7 @@ pub struct TemplateNode {
     /// The GPU field kernel, with `field.device` = "gpu" (or "auto" with an adapter).
     gpu: Option<(Arc<GpuContext>, DffKernel)>,
     /// The previous frame's keypoints anchored to the template (E_corr), and buffers.
-    anchors: corr::Anchors,
-    anchor_scratch: corr::AnchorScratch,
-    refine_scratch: misslam_features_matching::dense::RefineScratch,
+    corr: corr::CorrTracker,
 }
 
 /// Reads a template file into a mesh with normals.
@@ -464,7 +462,8 @@ impl TemplateNode {
         let prior = inputs.opt::<Pose>("pose")?;
         let features = inputs
             .opt::<Features>("features")?
-            .filter(|_| self.p.correspondences.enabled);
+            .filter(|_| self.p.correspondences.enabled)
+            .map(|f| f.as_ref());
         let mut pose = prior.map_or(Isometry3::identity(), |p| p.world_from_camera);
         let lost = prior.is_some_and(|p| p.state == TrackingState::Lost);
         scan_from_depth_into(
@@ -552,19 +551,17 @@ impl TemplateNode {
             };
             self.subset
                 .gather(&visible, &model.points, &model.normals, &model.bindings);
-            let corrs = match features {
-                Some(f) => corr::correspondences(
-                    f,
-                    &self.anchors,
+            let corrs = self
+                .corr
+                .correspondences(
+                    frame.index,
+                    features,
                     &pose,
                     &k,
                     &self.vertices,
                     &self.p.correspondences,
-                    &mut self.refine_scratch,
                 )
-                .map_err(|e| NodeError::msg(format!("frame {}: {e}", frame.index)))?,
-                None => Vec::new(),
-            };
+                .map_err(NodeError::msg)?;
             metrics
                 .values
                 .insert("template.correspondences".into(), corrs.len() as f64);
@@ -623,27 +620,18 @@ impl TemplateNode {
         );
         // This frame's keypoints anchored to the deformed template for the next frame's
         // correspondences (none after a lost frame).
-        self.anchors = match features {
-            Some(f) if !lost => {
-                let nm = model.graph.normal_matrices();
-                corr::anchor(
-                    f,
-                    &pose,
-                    &live,
-                    &model.points,
-                    &model.bindings,
-                    |s| local_inverses(&model.bindings[s], &nm).0,
-                    self.p.correspondences.anchor_distance_mm,
-                    (self.p.correspondences.refine_steps > 0).then_some(corr::DepthPoints {
-                        vertices: &self.vertices,
-                        intrinsics: k,
-                        max_step_mm: self.p.correspondences.refine_max_step_mm,
-                    }),
-                    &mut self.anchor_scratch,
-                )
-            }
-            _ => corr::Anchors::default(),
-        };
+        self.corr.anchor(
+            features,
+            lost,
+            &pose,
+            &live,
+            &model.points,
+            &model.bindings,
+            &model.graph,
+            &self.vertices,
+            &k,
+            &self.p.correspondences,
+        );
         if let Some(img) = left {
             let cfw = pose.inverse();
             for &i in &visible {
@@ -776,9 +764,7 @@ pub fn build(p: Params, ctx: &BuildContext) -> Result<TemplateNode, BuildError> 
         scan_normals: Vec::new(),
         align_rms: None,
         gpu,
-        anchors: corr::Anchors::default(),
-        anchor_scratch: corr::AnchorScratch::default(),
-        refine_scratch: Default::default(),
+        corr: corr::CorrTracker::default(),
     })
 }
 
