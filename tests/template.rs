@@ -237,6 +237,31 @@ fn on_the_heart_dff_is_at_least_as_accurate_as_back_projection() {
 }
 
 #[test]
+fn a_lost_track_leaves_its_frame_unscored_and_the_run_goes_on() {
+    // A jerk of the scope 0.5 s in (8 mm out and back in 0.2 s) loses the ORB track on frame 18:
+    // the template is not deformed there and nothing is visible, so `seen` has no point to score.
+    // That frame is counted as unscored and the run goes on to the last frame.
+    let (e, _) = run(
+        "graphs/template_dff.toml",
+        &[
+            "graph.frames.count=22",
+            "src.trajectory=fast",
+            "src.fast_start_s=0.5",
+        ],
+        "template_lost",
+    );
+    eprintln!(
+        "jerk: lost {:.1} %, seen unscored {:.1} %, recon {:.3} mm",
+        e["tracking.lost_pct"], e["seen.unscored_pct"], e["recon.mean_mm"]
+    );
+    assert!(e["tracking.lost_pct"] > 0.0, "the jerk must lose the track");
+    assert_eq!(e["seen.unscored_pct"], e["tracking.lost_pct"]);
+    assert_eq!(e["recon.unscored_pct"], 0.0);
+    assert!(e["recon.mean_mm"] < 1.0, "{}", e["recon.mean_mm"]);
+    assert!(e["seen.mean_mm"] < 0.2, "{}", e["seen.mean_mm"]);
+}
+
+#[test]
 fn icp_recovers_a_misplaced_template() {
     let base = exact(&[], "template_icp_base");
     let e = exact(

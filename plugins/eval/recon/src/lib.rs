@@ -6,7 +6,7 @@
 //! | `recon.mean_mm` | mean distance from the reconstruction's points to the GT surface, mm |
 //! | `recon.rms_mm` | root mean square of those distances, mm |
 //! | `recon.p95_mm` | 95th percentile (nearest rank), mm |
-//!
+//! | `recon.unscored_pct` | frames with no point to score (lost track, model out of view), % |
 //! | `recon.drift_mm` | material drift of the surfels or mesh vertices (with `rest_points_gt` and `depth_gt`), mm |
 //!
 //! Material drift follows each surfel of a model (by its id), or each vertex of a mesh (by its
@@ -432,7 +432,7 @@ impl Node for EvalRecon {
     fn process(
         &mut self,
         _: &mut NodeContext,
-        _: FrameInfo,
+        frame: FrameInfo,
         inputs: &Inputs,
         outputs: &mut Outputs,
     ) -> NodeResult<Flow> {
@@ -468,12 +468,31 @@ impl Node for EvalRecon {
                 ))
             }
         };
-        let (s, dist) = score(points, gt).map_err(NodeError::msg)?;
         let k = |name: &str| format!("{}.{name}", self.params.prefix);
+        if points.is_empty() {
+            // Nothing to score (a lost track left nothing deformed or visible, or the model is
+            // out of view): the frame is counted as unscored, the run goes on.
+            tracing::warn!(
+                frame = frame.index,
+                "{}: the reconstruction has no points; the frame is not scored",
+                self.params.prefix
+            );
+            let m = self.means.add([
+                (k("mean_mm"), f64::NAN),
+                (k("rms_mm"), f64::NAN),
+                (k("p95_mm"), f64::NAN),
+                (k("unscored_pct"), 100.0),
+            ]);
+            outputs.put("metrics", m)?;
+            outputs.put("colored", PointCloud::default())?;
+            return Ok(Flow::Continue);
+        }
+        let (s, dist) = score(points, gt).map_err(NodeError::msg)?;
         let mut values = vec![
             (k("mean_mm"), s.mean_mm),
             (k("rms_mm"), s.rms_mm),
             (k("p95_mm"), s.p95_mm),
+            (k("unscored_pct"), 0.0),
         ];
         let rest = inputs.opt::<VertexMap>("rest_points_gt")?;
         let depth = inputs.opt::<DepthMap>("depth_gt")?;
