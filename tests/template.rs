@@ -200,40 +200,75 @@ fn keypoint_correspondences_keep_the_template_from_sliding() {
 }
 
 #[test]
-fn on_the_heart_dff_is_at_least_as_accurate_as_back_projection() {
+fn dff_is_at_least_as_accurate_as_back_projection_on_the_heart_and_kidney() {
     // The thesis's Table 3.1 comparison on the graph as shipped (ELAS depth, the ORB tracker's
-    // pose, sensor noise), the same 20 frames for both data terms. Measured over 40 frames:
-    // heart 0.655 (dff) vs 0.679 mm, liver 0.249 vs 0.251; on the kidney back-projection is
-    // ahead (0.198 vs 0.197), so this checks the heart only.
-    let mut r = BTreeMap::new();
-    let mut out = BTreeMap::new();
-    for dt in ["dff", "projective"] {
-        let (e, dir) = run(
-            "graphs/template_dff.toml",
-            &["graph.frames.count=20", &format!("fusion.data_term={dt}")],
-            &format!("template_stereo_{dt}"),
+    // pose and keypoint correspondences, sensor noise), the same 20 frames for both data terms.
+    // Measured (whole template, DFF vs back-projection): heart 0.331 vs 0.381 mm, kidney 0.191
+    // vs 0.222; over 40 frames 0.427 vs 0.497 and 0.191 vs 0.216. On the liver back-projection
+    // is ahead (0.254 vs 0.242 mm), so it is not checked here.
+    for organ in ["heart", "kidney"] {
+        let mut r = BTreeMap::new();
+        let mut out = BTreeMap::new();
+        for dt in ["dff", "projective"] {
+            let (e, dir) = run(
+                "graphs/template_dff.toml",
+                &[
+                    "graph.frames.count=20",
+                    &format!("src.scene={organ}"),
+                    &format!("fusion.data_term={dt}"),
+                ],
+                &format!("template_stereo_{organ}_{dt}"),
+            );
+            eprintln!(
+                "{organ}, stereo depth, {dt}: whole template {:.3} mm, seen {:.3} mm, drift {:.3} mm, ATE {:.3} mm",
+                e["recon.mean_mm"], e["seen.mean_mm"], e["recon.drift_mm"], e["tracking.ate_mm"]
+            );
+            r.insert(dt, e);
+            out.insert(dt, dir);
+        }
+        let (d, p) = (&r["dff"], &r["projective"]);
+        assert!(d["recon.mean_mm"] < 0.6, "{organ}: {}", d["recon.mean_mm"]);
+        assert!(d["seen.mean_mm"] < 0.15, "{organ}: {}", d["seen.mean_mm"]);
+        assert!(
+            d["recon.mean_mm"] <= p["recon.mean_mm"],
+            "{organ}: dff {} vs projective {}",
+            d["recon.mean_mm"],
+            p["recon.mean_mm"]
         );
-        eprintln!(
-            "stereo depth, {dt}: whole template {:.3} mm, seen {:.3} mm, drift {:.3} mm, ATE {:.3} mm",
-            e["recon.mean_mm"], e["seen.mean_mm"], e["recon.drift_mm"], e["tracking.ate_mm"]
-        );
-        r.insert(dt, e);
-        out.insert(dt, dir);
+        if organ == "heart" {
+            // The export: the coloured template as PLY.
+            let ply =
+                std::fs::read(out["dff"].join("export/mesh/final.ply")).expect("final.ply written");
+            let header = String::from_utf8_lossy(&ply[..ply.len().min(400)]).to_string();
+            assert!(header.contains("property uchar red"), "{header}");
+            assert!(header.contains("element face"), "{header}");
+        }
     }
-    let (d, p) = (&r["dff"], &r["projective"]);
-    assert!(d["recon.mean_mm"] < 1.0, "{}", d["recon.mean_mm"]);
-    assert!(d["seen.mean_mm"] < 0.2, "{}", d["seen.mean_mm"]);
-    assert!(
-        d["recon.mean_mm"] <= p["recon.mean_mm"] * 1.02,
-        "dff {} vs projective {}",
-        d["recon.mean_mm"],
-        p["recon.mean_mm"]
+}
+
+#[test]
+fn keypoints_hold_the_template_to_the_tissue_on_stereo_depth() {
+    // The shipped graph with and without its ORB correspondences, on the liver, where they once
+    // made the template slide (9.5 mm of drift over 40 frames: keypoints anchored off the surface
+    // flattened the node affines). Measured over 20 frames: drift 0.160 mm with E_corr, 0.576
+    // without; whole template 0.254 against 0.242 mm.
+    let sets = ["graph.frames.count=20", "src.scene=liver"];
+    let (with, _) = run("graphs/template_dff.toml", &sets, "template_liver_corr");
+    let mut off = sets.to_vec();
+    off.push("fusion.correspondences.enabled=false");
+    let (without, _) = run("graphs/template_dff.toml", &off, "template_liver_nocorr");
+    let (a, b) = (with["recon.drift_mm"], without["recon.drift_mm"]);
+    eprintln!(
+        "liver, 20 frames: drift {a:.3} mm with E_corr, {b:.3} mm without; recon {:.3} / {:.3} mm",
+        with["recon.mean_mm"], without["recon.mean_mm"]
     );
-    // The export: the coloured template as PLY.
-    let ply = std::fs::read(out["dff"].join("export/mesh/final.ply")).expect("final.ply written");
-    let header = String::from_utf8_lossy(&ply[..ply.len().min(400)]).to_string();
-    assert!(header.contains("property uchar red"), "{header}");
-    assert!(header.contains("element face"), "{header}");
+    assert!(a < 0.7 * b, "drift {a} with E_corr, {b} without");
+    assert!(
+        with["recon.mean_mm"] < 1.1 * without["recon.mean_mm"],
+        "recon {} with E_corr, {} without",
+        with["recon.mean_mm"],
+        without["recon.mean_mm"]
+    );
 }
 
 #[test]

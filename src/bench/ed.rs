@@ -221,6 +221,7 @@ pub fn ed_scaling(p: &EdScalingParams) -> Result<Vec<EdScalingRow>, String> {
                         point: points[i as usize],
                         binding: bindings[i as usize],
                         target: truth[i as usize] - Vector3::new(cam_x, 0.0, 0.0),
+                        normal: None,
                     })
                     .collect();
                 let problem = Problem {

@@ -19,7 +19,7 @@
 
 use crate::evaluate::{Assoc, Pass};
 use crate::graph::{Binding, EdGraph, MAX_K};
-use crate::problem::{Problem, SolverParams};
+use crate::problem::{FieldJacobian, Problem, SolverParams};
 use crate::system::BlockSystem;
 use misslam_framework::nalgebra::{Isometry3, Matrix3, Point3, Vector3};
 use rayon::prelude::*;
@@ -75,6 +75,8 @@ pub(crate) struct DataAssembly {
     model_nt: Vec<NodeTerm>,
     corr_pt: Vec<PointTerm>,
     corr_nt: Vec<NodeTerm>,
+    /// A^-T of every node, for the warped normals of [`FieldJacobian::Normal`].
+    normal_matrices: Vec<Matrix3<f64>>,
 }
 
 /// The couplings of one binding: (block index, coupling); at most 2 K^2.
@@ -477,6 +479,14 @@ impl DataAssembly {
         let cam =
             |v: &Vector3<f64>, b: &Binding| (cfw * Point3::from(graph.warp_point(v, b))).coords;
         let none = (Vector3::zeros(), 0.0, 0.0);
+        // The field row's Jacobian: the field's gradient, or its part along the warped model
+        // normal (see `FieldJacobian`).
+        let normal_jac = problem.field.is_some() && params.field_jacobian == FieldJacobian::Normal;
+        if normal_jac {
+            graph.normal_matrices_into(&mut self.normal_matrices);
+        }
+        let nmats = &self.normal_matrices;
+        let r_cw = r_wc.transpose();
         let mut pose_acc = fill(
             &mut self.model_pt,
             &mut self.model_nt,
@@ -516,6 +526,13 @@ impl DataAssembly {
                 }
                 if let Some((dv, grad)) = problem.field.and_then(|f| f.sample(&p)) {
                     let (rw, _) = params.robust.weight_cost(dv.abs(), c);
+                    let grad = if normal_jac {
+                        let n =
+                            r_cw * graph.warp_normal(&model.normals[i], &model.bindings[i], nmats);
+                        n * n.dot(&grad)
+                    } else {
+                        grad
+                    };
                     rows.0[rows.1] = (grad, dv, w.field * rw);
                     rows.1 += 1;
                 }
@@ -531,16 +548,11 @@ impl DataAssembly {
             |i| {
                 let corr = &problem.correspondences[i];
                 let p = cam(&corr.point, &corr.binding);
-                let d = p - corr.target;
-                let (rw, _) = params.robust.weight_cost(d.norm(), c);
+                let (r3, norm) = corr.rows(&p, w.corr_normal);
+                let (rw, _) = params.robust.weight_cost(norm, c);
                 let wc = w.corr * rw;
-                let rows = [
-                    (Vector3::x(), d.x, wc),
-                    (Vector3::y(), d.y, wc),
-                    (Vector3::z(), d.z, wc),
-                    none,
-                    none,
-                ];
+                let row = |k: usize| (r3[k].0, r3[k].1, wc * r3[k].2);
+                let rows = [row(0), row(1), row(2), none, none];
                 (corr.point, Some(((rows, 3), p)))
             },
         );

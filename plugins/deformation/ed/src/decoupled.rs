@@ -74,6 +74,7 @@ impl DecoupledInfo {
             cost_before: a.cost_before,
             cost_after: a.cost_after,
             costs: a.costs.clone(),
+            rejected_steps: a.rejected_steps + b.rejected_steps,
             solved_nodes: a.solved_nodes + b.solved_nodes,
             data_terms: a.data_terms,
             symbolic_builds: a.symbolic_builds + b.symbolic_builds,

@@ -26,7 +26,7 @@ pub use engine::{Engine, SolverKind};
 pub use field::DistanceField;
 pub use graph::{Binding, EdGraph, GraphParams, Sampling};
 pub use problem::{
-    Correspondence, Intrinsics, Method, ModelPoints, ModelSubset, Problem, Robust, Scan,
-    SolverParams, Weights,
+    Correspondence, FieldJacobian, Intrinsics, Method, ModelPoints, ModelSubset, Problem, Robust,
+    Scan, SolverParams, Weights,
 };
 pub use solver::{Info, SolveSet, Solver};

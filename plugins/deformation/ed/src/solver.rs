@@ -13,7 +13,7 @@
 use crate::assemble::DataAssembly;
 use crate::evaluate::Pass;
 use crate::graph::{apply_node, Binding, EdGraph};
-use crate::problem::{Method, Problem, SolverParams};
+use crate::problem::{FieldJacobian, Method, Problem, SolverParams};
 use crate::system::{BlockSystem, PatternKey};
 use misslam_framework::nalgebra::{Isometry3, Matrix3, Translation3, UnitQuaternion, Vector3};
 use rayon::prelude::*;
@@ -30,6 +30,8 @@ pub struct Info {
     pub cost_after: f64,
     /// Cost after each accepted iteration.
     pub costs: Vec<f64>,
+    /// Levenberg-Marquardt steps tried and rejected (each a factorisation).
+    pub rejected_steps: usize,
     /// Nodes solved.
     pub solved_nodes: usize,
     /// Data residuals associated at the end (projective) plus field and correspondence terms.
@@ -185,7 +187,7 @@ impl Solver {
             for corr in problem.correspondences {
                 let vw = graph.warp_point(&corr.point, &corr.binding);
                 let p = cfw * misslam_framework::nalgebra::Point3::from(vw);
-                let r = (p.coords - corr.target).norm();
+                let (_, r) = corr.rows(&p.coords, w.corr_normal);
                 total += w.corr * params.robust.weight_cost(r, c).1;
             }
         }
@@ -480,10 +482,19 @@ impl Solver {
                 );
             }
             if let Some(field) = problem.field {
+                let nm = graph.normal_matrices();
                 for i in 0..model.points.len() {
                     let vw = graph.warp_point(&model.points[i], &model.bindings[i]);
                     let p = (cfw * misslam_framework::nalgebra::Point3::from(vw)).coords;
                     if let Some((dv, grad)) = field.sample(&p) {
+                        let grad = match params.field_jacobian {
+                            FieldJacobian::Gradient => grad,
+                            FieldJacobian::Normal => {
+                                let n = cfw.rotation
+                                    * graph.warp_normal(&model.normals[i], &model.bindings[i], &nm);
+                                n * n.dot(&grad)
+                            }
+                        };
                         let (rw, _) = params.robust.weight_cost(dv.abs(), c);
                         let rows = [(grad, dv, w.field * rw)];
                         Self::add_point(
@@ -502,14 +513,10 @@ impl Solver {
             for corr in problem.correspondences {
                 let vw = graph.warp_point(&corr.point, &corr.binding);
                 let p = (cfw * misslam_framework::nalgebra::Point3::from(vw)).coords;
-                let d = p - corr.target;
-                let (rw, _) = params.robust.weight_cost(d.norm(), c);
+                let (r3, norm) = corr.rows(&p, w.corr_normal);
+                let (rw, _) = params.robust.weight_cost(norm, c);
                 let wc = w.corr * rw;
-                let rows = [
-                    (Vector3::x(), d.x, wc),
-                    (Vector3::y(), d.y, wc),
-                    (Vector3::z(), d.z, wc),
-                ];
+                let rows = r3.map(|(dir, r, f)| (dir, r, wc * f));
                 Self::add_point(
                     sys,
                     graph,
@@ -672,6 +679,7 @@ impl Solver {
             self.saved
                 .extend(set.free.iter().map(|&j| graph.warp[j as usize]));
             let mut accepted = false;
+            let mut converged = false;
             let mut step_norm = 0.0f64;
             for _attempt in 0..10 {
                 let tf = Instant::now();
@@ -719,12 +727,23 @@ impl Solver {
                         lambda = (lambda / 3.0).max(1e-9);
                         break;
                     }
+                    // A rejected step that changes the cost by less than the stopping tolerance:
+                    // the minimum is reached, and more damping only shortens the step (each try
+                    // costs a factorisation). Seen where the Jacobian leaves out part of the
+                    // cost's variation (`FieldJacobian::Normal`).
+                    if new_cost - cost <= params.min_relative_decrease * cost.max(1e-30) {
+                        converged = true;
+                    }
                 }
                 // Rejected: restore and damp more.
+                info.rejected_steps += 1;
                 for (idx, &j) in set.free.iter().enumerate() {
                     graph.warp[j as usize] = self.saved[idx];
                 }
                 *pose = pose0;
+                if converged {
+                    break;
+                }
                 if params.method == Method::GaussNewton {
                     lambda = 1e-6;
                 } else {

@@ -215,6 +215,7 @@ fn run(h: &Heart, v: Variant, params: &SolverParams) -> Outcome {
                     point: points[i],
                     binding: bindings[i],
                     target: (cfw * Point3::from(truth[i])).coords,
+                    normal: None,
                 })
                 .collect()
         };

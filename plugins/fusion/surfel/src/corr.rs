@@ -1,25 +1,29 @@
 //! Sparse correspondences for E_corr from the keypoints of consecutive frames (MIS-SLAM hands the
 //! feature matches of its tracker to the ED solve as sparse constraints).
 //!
-//! At the end of a frame every keypoint with a stereo 3D point is *anchored* to the model: its
-//! world position (the frame's final pose) is expressed in the canonical frame through the
-//! closest live surfel within `anchor_distance_mm` (its canonical position plus the offset
-//! mapped back by the warp's local linear part), with that surfel's binding. On the next frame
+//! At the end of a frame every keypoint with a 3D point is *anchored* to the model: its world
+//! position (the frame's final pose), moved onto the tangent plane of the closest live surfel
+//! within `anchor_distance_mm`, is expressed in the canonical frame (the surfel's canonical
+//! position plus the offset mapped back through the warp, see [`anchor`]), with that surfel's
+//! binding. On the next frame
 //! each anchor is projected into the image through the prior pose and matched by descriptor to
 //! the keypoints within `radius_px` of it (guided matching, ratio test, each keypoint keeping its
 //! nearest anchor); each match asks the warp to carry the anchor onto the keypoint's new 3D point
 //! (camera frame). A match whose 3D point lies farther than `max_jump_mm` from the anchor's live
 //! position (under the prior pose) is dropped as wrong.
 //!
+//! A keypoint's 3D point is read from the depth's vertex map at its pixel (`points = "depth"`,
+//! [`DepthPoints`]), the surface the data term fits, or is its own stereo point (`"stereo"`).
+//! Both ends of a correspondence take it from the same source: with SURF stereo points as
+//! anchors and depth points as targets the two depths disagreed, and the constraints twisted
+//! the node affines.
+//!
 //! Dense descriptors (upright dense SURF) sit on a grid: the keypoint a match lands on is up to
-//! half a grid step from where the tissue went. When the features carry a descriptor sampler,
-//! each match is moved to the pixel whose descriptor fits the anchor's best and then to the
-//! sub-pixel minimum ([`misslam_features_matching::dense`]), and its 3D point is read from the
-//! depth's vertex map there; the anchors of such features take their points from the depth too
-//! ([`DepthPoints`]), so both ends of a correspondence come from one depth source (with the
-//! keypoints' stereo points as anchors the two depths disagreed, and the constraints twisted
-//! the node affines). On the phantom heart (6 px grid, 320x240) refinement takes the mean
-//! distance between an anchor's tissue point and its match's from 0.42 to 0.08 mm.
+//! half a grid step from where the tissue went. When the features carry a descriptor sampler
+//! (and points come from the depth), each match is moved to the pixel whose descriptor fits the
+//! anchor's best and then to the sub-pixel minimum ([`misslam_features_matching::dense`]), and
+//! its 3D point is read there. On the phantom heart (6 px grid, 320x240) refinement takes the
+//! mean distance between an anchor's tissue point and its match's from 0.42 to 0.08 mm.
 
 use misslam_deformation_ed::graph::{Binding, EdGraph};
 use misslam_deformation_ed::problem::Correspondence;
@@ -48,13 +52,38 @@ pub struct CorrParams {
     pub max_distance: f32,
     /// Largest L2 distance of float descriptors (SURF).
     pub max_distance_l2: f32,
-    /// With dense descriptors (features that carry a sampler): how many pixels a match may move
-    /// from its grid keypoint to the pixel that fits best; 0 keeps the grid keypoint and its
-    /// stereo point.
+    /// Where a keypoint's 3D point (anchor and match alike) comes from: `depth` or `stereo`.
+    pub points: PointSource,
+    /// With dense descriptors (features that carry a sampler) and `points = "depth"`: how many
+    /// pixels a match may move from its grid keypoint to the pixel that fits best; 0 keeps the
+    /// grid keypoint.
     pub refine_steps: u32,
-    /// A refined match takes its 3D point from the four depth pixels around it, and is dropped
-    /// when their depths differ by more than this (an edge), mm.
-    pub refine_max_step_mm: f64,
+    /// With `points = "depth"`: a keypoint's 3D point is read from the four depth pixels around
+    /// it, and it is dropped when their depths differ by more than this (an edge), mm.
+    pub depth_max_step_mm: f64,
+}
+
+/// Where the 3D point of a keypoint comes from (`correspondences.points`).
+#[derive(
+    Clone,
+    Copy,
+    Debug,
+    Default,
+    PartialEq,
+    Eq,
+    serde::Serialize,
+    serde::Deserialize,
+    schemars::JsonSchema,
+)]
+#[serde(rename_all = "snake_case")]
+pub enum PointSource {
+    /// The depth map the data term fits (its vertex map, bilinear at the keypoint): both ends of
+    /// a correspondence and the data term see one surface. Phantom heart, template fusion,
+    /// 40 frames: whole-template error 0.43 mm against 0.55 with `stereo`.
+    #[default]
+    Depth,
+    /// The keypoint's own stereo match (`Features::points`), independent of the depth map.
+    Stereo,
 }
 
 impl Default for CorrParams {
@@ -67,8 +96,9 @@ impl Default for CorrParams {
             ratio: 0.8,
             max_distance: 64.0,
             max_distance_l2: 0.4,
+            points: PointSource::Depth,
             refine_steps: 6,
-            refine_max_step_mm: 2.0,
+            depth_max_step_mm: 2.0,
         }
     }
 }
@@ -82,7 +112,7 @@ impl CorrParams {
             ("radius_px", self.radius_px as f64),
             ("max_distance", self.max_distance as f64),
             ("max_distance_l2", self.max_distance_l2 as f64),
-            ("refine_max_step_mm", self.refine_max_step_mm),
+            ("depth_max_step_mm", self.depth_max_step_mm),
         ] {
             if v.is_nan() || v <= 0.0 {
                 return Err(format!("`{name}` must be positive, got {v}"));
@@ -133,28 +163,28 @@ pub struct CorrTracker {
 }
 
 impl CorrTracker {
-    /// This frame's correspondences against the last frame's anchors (see [`correspondences`]);
-    /// the error names `frame`.
+    /// This frame's correspondences against the last frame's anchors (see [`correspondences`]:
+    /// `scan` is the depth's vertex and normal maps); the error names `frame`.
     pub fn correspondences(
         &mut self,
         frame: u64,
         features: Option<&Features>,
         prior: &Isometry3<f64>,
         k: &Intrinsics,
-        vertices: &[[f32; 3]],
+        scan: (&[[f32; 3]], &[[f32; 3]]),
         p: &CorrParams,
     ) -> Result<Vec<Correspondence>, String> {
         match features {
-            Some(f) => correspondences(f, &self.anchors, prior, k, vertices, p, &mut self.refine)
+            Some(f) => correspondences(f, &self.anchors, prior, k, scan, p, &mut self.refine)
                 .map_err(|e| format!("frame {frame}: {e}")),
             None => Ok(Vec::new()),
         }
     }
 
     /// Anchors this frame's keypoints to the deformed model (`live`, world frame, of the
-    /// canonical points `canon` bound by `bindings` to `graph`) for the next frame; none after a
-    /// lost frame, whose pose is not the scope's. Dense keypoints take their points from
-    /// `vertices` (see [`DepthPoints`]).
+    /// canonical points `canon` bound by `bindings` to `graph`, unit normals `live_normals`) for
+    /// the next frame; none after a lost frame, whose pose is not the scope's. With
+    /// `points = "depth"` keypoints take their points from `vertices` (see [`DepthPoints`]).
     #[allow(clippy::too_many_arguments)]
     pub fn anchor(
         &mut self,
@@ -162,6 +192,7 @@ impl CorrTracker {
         lost: bool,
         pose: &Isometry3<f64>,
         live: &[Vector3<f64>],
+        live_normals: &[Vector3<f64>],
         canon: &[Vector3<f64>],
         bindings: &[Binding],
         graph: &EdGraph,
@@ -176,14 +207,16 @@ impl CorrTracker {
                     f,
                     pose,
                     live,
+                    live_normals,
                     canon,
                     bindings,
                     |s| local_inverses(&bindings[s], &nm).0,
+                    |v, b| graph.warp_point(v, b),
                     p.anchor_distance_mm,
-                    (p.refine_steps > 0).then_some(DepthPoints {
+                    (p.points == PointSource::Depth).then_some(DepthPoints {
                         vertices,
                         intrinsics: *k,
-                        max_step_mm: p.refine_max_step_mm,
+                        max_step_mm: p.depth_max_step_mm,
                     }),
                     &mut self.anchor_scratch,
                 )
@@ -211,8 +244,8 @@ pub fn local_inverses(b: &Binding, nm: &[Matrix3<f64>]) -> (Matrix3<f64>, Matrix
 }
 
 /// The depth's vertex map (camera frame, `intrinsics.width` x `intrinsics.height`), from which
-/// dense keypoints take their 3D points, and the largest depth step between the four pixels
-/// around a point, mm.
+/// keypoints take their 3D points (`points = "depth"`), and the largest depth step between the
+/// four pixels around a point, mm.
 pub struct DepthPoints<'a> {
     /// Row-major points, NaN where invalid.
     pub vertices: &'a [[f32; 3]],
@@ -230,18 +263,44 @@ fn cell_key(c: [i64; 3]) -> u64 {
     (b(c[2]) << 42) | (b(c[1]) << 21) | b(c[0])
 }
 
+/// Fixed-point corrections of an anchor's canonical point at most ([`anchor`]).
+const ANCHOR_STEPS: usize = 4;
+
+/// How close the warp must carry an anchor's canonical point to its keypoint, mm
+/// ([`anchor`]).
+pub const ANCHOR_TOLERANCE_MM: f64 = 0.01;
+
 /// Anchors `features` (camera frame, seen at `pose`) to the live model: `live`/`canon`/
-/// `bindings` per surfel, `local_inverse(s)` the warp's A^-1 at surfel `s`. Only the surfels in
-/// the keypoints' bounding box (grown by `radius`) are binned, in cells of `radius`, so the
-/// closest within `radius` lies in the 27 cells around the keypoint's.
+/// `bindings` per surfel, `local_inverse(s)` the warp's A^-1 at surfel `s`, `warp(v, b)` the
+/// live position of canonical point `v` bound by `b`. Only the surfels in the keypoints'
+/// bounding box (grown by `radius`) are binned, in cells of `radius`, so the closest within
+/// `radius` lies in the 27 cells around the keypoint's.
+///
+/// The anchor is the keypoint's point moved along the surfel's live normal (`live_normals`,
+/// unit; empty: keypoints anchor at their own points) onto the surfel's tangent plane: the tissue point under the keypoint. A keypoint's
+/// stereo point lies off the surface by its depth noise, a fresh draw every frame; anchored
+/// off the surface, E_corr asked each node to map those offsets onto the next frame's, and the
+/// least-squares answer to independent noise is to flatten them: node affines lost their
+/// extent along the normal (a diagonal entry of A from 1 to 0.07 in one solve on the phantom
+/// liver), which no other term resists to first order.
+///
+/// The canonical point starts at the surfel's plus the offset mapped back by A^-1, and is
+/// corrected (fixed-point steps through A^-1) until the warp carries it onto the keypoint
+/// within [`ANCHOR_TOLERANCE_MM`]; an anchor that does not get there is dropped. The first
+/// step alone is exact only where the nodes of the binding share one affine: where they
+/// differ, the warped anchor missed its keypoint, and the next frame's correspondence asked
+/// the solve to close that gap too (on the phantom liver, gaps of 10 to 10,000 mm once the
+/// affines had begun to twist, which twisted them further: the template slid 4.7 mm).
 #[allow(clippy::too_many_arguments)]
 pub fn anchor(
     features: &Features,
     pose: &Isometry3<f64>,
     live: &[Vector3<f64>],
+    live_normals: &[Vector3<f64>],
     canon: &[Vector3<f64>],
     bindings: &[Binding],
     local_inverse: impl Fn(usize) -> Matrix3<f64>,
+    warp: impl Fn(&Vector3<f64>, &Binding) -> Vector3<f64>,
     radius: f64,
     depth: Option<DepthPoints>,
     scratch: &mut AnchorScratch,
@@ -252,8 +311,6 @@ pub fn anchor(
     };
     let AnchorScratch { cells, world } = scratch;
     world.clear();
-    // Dense descriptors take their points from the depth, as their refined matches do.
-    let depth = depth.filter(|_| features.sampler.is_some());
     world.extend(points.iter().zip(&features.keypoints).map(|(q, kp)| {
         let c = match &depth {
             Some(d) => vertex_at(d.vertices, &d.intrinsics, [kp.x, kp.y], d.max_step_mm)
@@ -303,10 +360,28 @@ pub fn anchor(
         if s == usize::MAX {
             continue;
         }
+        // The tissue point under the keypoint: its 3D point moved onto the surfel's tangent
+        // plane (see the function doc).
+        let n = live_normals.get(s).copied().unwrap_or_else(Vector3::zeros);
+        let w = w - n * n.dot(&(w - live[s]));
+        let a_inv = local_inverse(s);
+        let mut c = canon[s] + a_inv * (w - live[s]);
+        let mut exact = false;
+        for _ in 0..ANCHOR_STEPS {
+            let r = w - warp(&c, &bindings[s]);
+            if r.norm() <= ANCHOR_TOLERANCE_MM {
+                exact = true;
+                break;
+            }
+            c += a_inv * r;
+        }
+        if !exact {
+            continue;
+        }
         keep.push(i);
-        out.canon.push(canon[s] + local_inverse(s) * (w - live[s]));
+        out.canon.push(c);
         out.bindings.push(bindings[s]);
-        out.live.push(*w);
+        out.live.push(w);
     }
     out.descriptors = Some(match &features.descriptors {
         Descriptors::Binary256(d) => Descriptors::Binary256(keep.iter().map(|&i| d[i]).collect()),
@@ -354,18 +429,31 @@ fn vertex_at(
 
 /// This frame's correspondences: its keypoints (seen through intrinsics `k`) matched to the
 /// anchored ones, each with a 3D point (camera frame) within `max_jump_mm` of the anchor under
-/// `prior`. With a descriptor sampler on the features (dense descriptors) and
-/// `refine_steps > 0`, each match is moved to where the anchor's descriptor fits best and takes
-/// its 3D point from `vertices`, the depth's vertex map (`k.width` x `k.height`).
+/// `prior`. With `points = "depth"` a match takes its 3D point from `scan.0`, the depth's
+/// vertex map (`k.width` x `k.height`), and the surface normal there from `scan.1` (its normal
+/// map; E_corr along it is weighted by `weights.corr_normal`); with a descriptor sampler on the
+/// features (dense descriptors) and `refine_steps > 0` it is first moved to where the anchor's
+/// descriptor fits best.
 pub fn correspondences(
     features: &Features,
     anchors: &Anchors,
     prior: &Isometry3<f64>,
     k: &Intrinsics,
-    vertices: &[[f32; 3]],
+    scan: (&[[f32; 3]], &[[f32; 3]]),
     p: &CorrParams,
     scratch: &mut RefineScratch,
 ) -> Result<Vec<Correspondence>, String> {
+    let (vertices, normals) = scan;
+    let normal_at = |xy: [f32; 2]| -> Option<Vector3<f64>> {
+        let (u, v) = (xy[0].round(), xy[1].round());
+        if !(u >= 0.0 && v >= 0.0 && u < k.width as f32 && v < k.height as f32) {
+            return None;
+        }
+        let n = normals.get(v as usize * k.width as usize + u as usize)?;
+        let n = Vector3::new(n[0] as f64, n[1] as f64, n[2] as f64);
+        n.try_normalize(1e-9)
+            .filter(|n| n.iter().all(|c| c.is_finite()))
+    };
     let (Some(points), Some(train)) = (&features.points, &anchors.descriptors) else {
         return Ok(Vec::new());
     };
@@ -410,34 +498,43 @@ pub fn correspondences(
         &grid,
         &guided,
     );
+    let from_depth = p.points == PointSource::Depth;
     let refine = match (&features.sampler, train) {
-        (Some(sampler), Descriptors::Float64(d)) if p.refine_steps > 0 => Some((sampler, d)),
+        (Some(sampler), Descriptors::Float64(d)) if from_depth && p.refine_steps > 0 => {
+            Some((sampler, d))
+        }
         _ => None,
     };
     let mut out = Vec::with_capacity(matches.len());
     for m in matches {
         let (q, a) = (m.query as usize, m.train as usize);
-        let target = if let Some((sampler, anchor_d)) = refine {
-            let kp = &features.keypoints[q];
-            let Some(xy) = refine_match(
-                sampler.0.as_ref(),
-                &anchor_d[a],
-                kp.x,
-                kp.y,
-                p.refine_steps,
-                scratch,
-            ) else {
+        let kp = &features.keypoints[q];
+        let (target, normal) = if from_depth {
+            let xy = match refine {
+                Some((sampler, anchor_d)) => {
+                    let Some(xy) = refine_match(
+                        sampler.0.as_ref(),
+                        &anchor_d[a],
+                        kp.x,
+                        kp.y,
+                        p.refine_steps,
+                        scratch,
+                    ) else {
+                        continue;
+                    };
+                    xy
+                }
+                None => [kp.x, kp.y],
+            };
+            let Some(v) = vertex_at(vertices, k, xy, p.depth_max_step_mm) else {
                 continue;
             };
-            let Some(v) = vertex_at(vertices, k, xy, p.refine_max_step_mm) else {
-                continue;
-            };
-            v
+            (v, normal_at(xy))
         } else {
             let Some(pt) = points.get(q).filter(|v| v.iter().all(|c| c.is_finite())) else {
                 continue;
             };
-            Vector3::new(pt[0] as f64, pt[1] as f64, pt[2] as f64)
+            (Vector3::new(pt[0] as f64, pt[1] as f64, pt[2] as f64), None)
         };
         if ((prior * Point3::from(target)).coords - anchors.live[a]).norm() > p.max_jump_mm {
             continue;
@@ -446,6 +543,7 @@ pub fn correspondences(
             point: anchors.canon[a],
             binding: anchors.bindings[a],
             target,
+            normal,
         });
     }
     Ok(out)
@@ -514,6 +612,11 @@ mod tests {
         let live: Vec<Vector3<f64>> = canon.iter().map(|c| c + shift).collect();
         let bindings: Vec<Binding> = (0..canon.len() as u32).map(binding).collect();
         let a_inv = Matrix3::identity() * 0.5;
+        // The warp of a point bound to surfel s: A = 2 I about the surfel.
+        let warp = |v: &Vector3<f64>, b: &Binding| {
+            let s = b.nodes[0] as usize;
+            live[s] + (v - canon[s]) * 2.0
+        };
         // Three keypoints on the model, one 5 mm in front of it (not anchored).
         let pts = [
             [0.8f32, 0.3, 60.0],
@@ -523,13 +626,16 @@ mod tests {
         ];
         let pose = Isometry3::identity();
         let mut scratch = AnchorScratch::default();
+        let normals = vec![Vector3::z(); live.len()];
         let a = anchor(
             &features(&pts, &k),
             &pose,
             &live,
+            &normals,
             &canon,
             &bindings,
             |_| a_inv,
+            warp,
             1.0,
             None,
             &mut scratch,
@@ -553,9 +659,11 @@ mod tests {
             &features(&probes, &k),
             &pose,
             &canon,
+            &[],
             &canon,
             &bindings,
-            |_| Matrix3::zeros(),
+            |_| Matrix3::identity(),
+            |v: &Vector3<f64>, _: &Binding| *v,
             1.0,
             None,
             &mut scratch,
@@ -567,10 +675,14 @@ mod tests {
                 .filter(|&s| (canon[s] - q).norm() <= 1.0)
                 .min_by(|&x, &y| (canon[x] - q).norm().total_cmp(&(canon[y] - q).norm()));
             if let Some(s) = nearest {
-                // With A^-1 = 0 the anchor is its surfel's position: as close as the nearest
-                // (ties may pick either).
-                let d = (b.canon[found] - q).norm();
-                assert!((d - (canon[s] - q).norm()).abs() < 1e-12, "probe {q:?}");
+                // Under the identity warp the anchor is the probe itself, bound to the nearest
+                // surfel (ties may pick either).
+                assert!((b.canon[found] - q).norm() < 1e-12, "probe {q:?}");
+                let picked = b.bindings[found].nodes[0] as usize;
+                assert!(
+                    ((canon[picked] - q).norm() - (canon[s] - q).norm()).abs() < 1e-12,
+                    "probe {q:?}"
+                );
                 found += 1;
             }
         }
@@ -589,27 +701,188 @@ mod tests {
             d.swap(0, 2); // moved[0] is pts[2]: its descriptor is [2]
             d.swap(1, 2); // moved[1] is pts[0], moved[2] is pts[1]
         }
-        let p = CorrParams::default();
+        let p = CorrParams {
+            points: PointSource::Stereo,
+            ..CorrParams::default()
+        };
         let mut rs = RefineScratch::default();
-        let c = correspondences(&f, &a, &pose, &k, &[], &p, &mut rs).unwrap();
+        let c = correspondences(&f, &a, &pose, &k, (&[], &[]), &p, &mut rs).unwrap();
         assert_eq!(c.len(), 3);
         for corr in &c {
             // Each target is its anchor's live point moved by 0.4 mm in x.
             let i = a.canon.iter().position(|x| *x == corr.point).unwrap();
             assert!((corr.target - (a.live[i] + Vector3::new(0.4, 0.0, 0.0))).norm() < 1e-5);
         }
+        // From the depth instead: a depth map of the plane z = 60.5 gives each target the point
+        // of that plane on the keypoint's ray.
+        let vertices: Vec<[f32; 3]> = (0..k.width * k.height)
+            .map(|i| {
+                let (u, v) = ((i % k.width) as f64, (i / k.width) as f64);
+                let z = 60.5;
+                [
+                    ((u - k.cx) / k.fx * z) as f32,
+                    ((v - k.cy) / k.fy * z) as f32,
+                    z as f32,
+                ]
+            })
+            .collect();
+        let from_depth = CorrParams::default();
+        assert_eq!(from_depth.points, PointSource::Depth);
+        let d = correspondences(&f, &a, &pose, &k, (&vertices, &[]), &from_depth, &mut rs).unwrap();
+        assert_eq!(d.len(), 3);
+        for (corr, stereo) in d.iter().zip(&c) {
+            let want = stereo.target * (60.5 / stereo.target.z);
+            assert!(
+                (corr.target - want).norm() < 1e-3,
+                "{:?} vs {want:?}",
+                corr.target
+            );
+        }
         // A jump beyond max_jump_mm is refused.
         let far = CorrParams {
             max_jump_mm: 0.3,
-            ..CorrParams::default()
+            ..p.clone()
         };
-        assert!(correspondences(&f, &a, &pose, &k, &[], &far, &mut rs)
-            .unwrap()
-            .is_empty());
+        assert!(
+            correspondences(&f, &a, &pose, &k, (&[], &[]), &far, &mut rs)
+                .unwrap()
+                .is_empty()
+        );
         // Descriptors of another kind between frames are an error, not silent garbage.
         let mut surf = f.clone();
         surf.descriptors = Descriptors::Float64(vec![[0.0; 64]; 3]);
-        assert!(correspondences(&surf, &a, &pose, &k, &[], &p, &mut rs).is_err());
+        assert!(correspondences(&surf, &a, &pose, &k, (&[], &[]), &p, &mut rs).is_err());
+    }
+
+    #[test]
+    fn anchors_sit_on_the_surface_and_the_warp_carries_them_onto_it() {
+        use misslam_deformation_ed::graph::GraphParams;
+        let k = Intrinsics {
+            fx: 300.0,
+            fy: 300.0,
+            cx: 160.0,
+            cy: 120.0,
+            width: 320,
+            height: 240,
+        };
+        // Surfels on the plane z = 60 every 1.5 mm, bound to a graph whose nodes carry different
+        // affines (a stretch growing with x, a shear, a translation): one linear step through
+        // the blended A^-1 misses the keypoint.
+        let mut canon = Vec::new();
+        for y in -4..=4 {
+            for x in -4..=4 {
+                canon.push(Vector3::new(1.5 * x as f64, 1.5 * y as f64, 60.0));
+            }
+        }
+        let mut graph = EdGraph::from_points(
+            &canon,
+            GraphParams {
+                spacing: 4.0,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        for (j, g) in graph.nodes().to_vec().iter().enumerate() {
+            let s = 1.0 + 0.08 * g.x;
+            let t = 1.0 - 0.06 * g.y;
+            graph.warp[j] = [
+                s,
+                0.05 * g.y,
+                0.0,
+                0.3,
+                0.04 * g.x,
+                t,
+                0.0,
+                -0.2,
+                0.0,
+                0.0,
+                1.0,
+                0.1,
+            ];
+        }
+        let bindings = graph.bind_all(&canon);
+        let (mut live, mut normals) = (Vec::new(), Vec::new());
+        let canon_n = vec![Vector3::z(); canon.len()];
+        graph.deform(&canon, Some(&canon_n), &bindings, &mut live, &mut normals);
+        let nm = graph.normal_matrices();
+        // Keypoints 0.3 mm in front of the live surface, between surfels.
+        let on_surface: Vec<Vector3<f64>> = [(0.4, 0.3), (-2.6, 1.7), (3.1, -2.4)]
+            .iter()
+            .map(|&(u, v)| {
+                let c = Vector3::new(u, v, 60.0);
+                let s = (0..canon.len())
+                    .min_by(|&a, &b| (canon[a] - c).norm().total_cmp(&(canon[b] - c).norm()))
+                    .unwrap();
+                graph.warp_point(&c, &bindings[s])
+            })
+            .collect();
+        let pts: Vec<[f32; 3]> = on_surface
+            .iter()
+            .map(|p| {
+                let q = p - Vector3::z() * 0.3;
+                [q.x as f32, q.y as f32, q.z as f32]
+            })
+            .collect();
+        let pose = Isometry3::identity();
+        let anchored = |steps_ok: bool| {
+            anchor(
+                &features(&pts, &k),
+                &pose,
+                &live,
+                &normals,
+                &canon,
+                &bindings,
+                |s| local_inverses(&bindings[s], &nm).0,
+                |v: &Vector3<f64>, b: &Binding| {
+                    if steps_ok {
+                        graph.warp_point(v, b)
+                    } else {
+                        // A warp the fixed-point steps cannot follow (it doubles every offset).
+                        graph.warp_point(v, b) * 2.0
+                    }
+                },
+                2.0,
+                None,
+                &mut AnchorScratch::default(),
+            )
+        };
+        let a = anchored(true);
+        assert_eq!(a.len(), 3);
+        for (i, c) in a.canon.iter().enumerate() {
+            let w = graph.warp_point(c, &a.bindings[i]);
+            // The warp carries the anchor onto its live point, which lies on the surface (the
+            // live normal is the plane's, turned by the affines): within the tolerance.
+            assert!(
+                (w - a.live[i]).norm() <= ANCHOR_TOLERANCE_MM,
+                "{i}: {w:?} vs {:?}",
+                a.live[i]
+            );
+            let s = (0..live.len())
+                .min_by(|&x, &y| (live[x] - w).norm().total_cmp(&(live[y] - w).norm()))
+                .unwrap();
+            let off = normals[s].dot(&(w - live[s]));
+            assert!(off.abs() < 0.02, "{i}: {off} mm off the tangent plane");
+        }
+        // One linear step alone would have missed by more than the tolerance.
+        let missed = (0..a.len())
+            .map(|i| {
+                let s = (0..live.len())
+                    .min_by(|&x, &y| {
+                        (live[x] - a.live[i])
+                            .norm()
+                            .total_cmp(&(live[y] - a.live[i]).norm())
+                    })
+                    .unwrap();
+                let c = canon[s] + local_inverses(&bindings[s], &nm).0 * (a.live[i] - live[s]);
+                (graph.warp_point(&c, &bindings[s]) - a.live[i]).norm()
+            })
+            .fold(0.0f64, f64::max);
+        assert!(
+            missed > 1.5 * ANCHOR_TOLERANCE_MM,
+            "one step misses by {missed}"
+        );
+        // Anchors the warp cannot carry onto their keypoints are dropped.
+        assert_eq!(anchored(false).len(), 0);
     }
 
     #[test]

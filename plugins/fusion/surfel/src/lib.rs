@@ -372,7 +372,7 @@ impl SurfelNode {
                     features,
                     &pose,
                     &k,
-                    &self.vertices,
+                    (&self.vertices, &self.scan_normals),
                     &self.p.correspondences,
                 )
                 .map_err(NodeError::msg)?;
@@ -604,6 +604,7 @@ impl SurfelNode {
             lost,
             &pose,
             &live,
+            &live_n,
             &m.canon,
             &m.bindings,
             graph,

@@ -558,7 +558,7 @@ impl TemplateNode {
                     features,
                     &pose,
                     &k,
-                    &self.vertices,
+                    (&self.vertices, &self.scan_normals),
                     &self.p.correspondences,
                 )
                 .map_err(NodeError::msg)?;
@@ -625,6 +625,7 @@ impl TemplateNode {
             lost,
             &pose,
             &live,
+            &live_n,
             &model.points,
             &model.bindings,
             &model.graph,

@@ -150,6 +150,7 @@ pub fn correspondences(
             point: points[i],
             binding: bindings[i],
             target: target(i),
+            normal: None,
         })
         .collect()
 }
