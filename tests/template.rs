@@ -203,9 +203,12 @@ fn keypoint_correspondences_keep_the_template_from_sliding() {
 fn dff_is_at_least_as_accurate_as_back_projection_on_the_heart_and_kidney() {
     // The thesis's Table 3.1 comparison on the graph as shipped (ELAS depth, the ORB tracker's
     // pose and keypoint correspondences, sensor noise), the same 20 frames for both data terms.
-    // Measured (whole template, DFF vs back-projection): heart 0.331 vs 0.381 mm, kidney 0.191
-    // vs 0.222; over 40 frames 0.427 vs 0.497 and 0.191 vs 0.216. On the liver back-projection
-    // is ahead (0.254 vs 0.242 mm), so it is not checked here.
+    // Measured (whole template's distance to the surface, DFF vs back-projection): heart 0.331 vs
+    // 0.381 mm, kidney 0.191 vs 0.222; over 40 frames 0.427 vs 0.497 and 0.191 vs 0.216. The
+    // error of the tracked vertices where seen (`recon.vertex_seen_mm`): heart 0.473 vs 0.521,
+    // kidney 0.254 vs 0.388. On the liver back-projection is ahead in the surface distance
+    // (0.254 vs 0.242 mm) and level where seen (0.443 vs 0.434; over 40 frames 0.524 vs 0.577),
+    // so it is not checked here.
     for organ in ["heart", "kidney"] {
         let mut r = BTreeMap::new();
         let mut out = BTreeMap::new();
@@ -220,8 +223,12 @@ fn dff_is_at_least_as_accurate_as_back_projection_on_the_heart_and_kidney() {
                 &format!("template_stereo_{organ}_{dt}"),
             );
             eprintln!(
-                "{organ}, stereo depth, {dt}: whole template {:.3} mm, seen {:.3} mm, drift {:.3} mm, ATE {:.3} mm",
-                e["recon.mean_mm"], e["seen.mean_mm"], e["recon.drift_mm"], e["tracking.ate_mm"]
+                "{organ}, stereo depth, {dt}: whole template {:.3} mm, seen {:.3} mm, tracked vertices where seen {:.3} mm, drift {:.3} mm, ATE {:.3} mm",
+                e["recon.mean_mm"],
+                e["seen.mean_mm"],
+                e["recon.vertex_seen_mm"],
+                e["recon.drift_mm"],
+                e["tracking.ate_mm"]
             );
             r.insert(dt, e);
             out.insert(dt, dir);
@@ -229,12 +236,14 @@ fn dff_is_at_least_as_accurate_as_back_projection_on_the_heart_and_kidney() {
         let (d, p) = (&r["dff"], &r["projective"]);
         assert!(d["recon.mean_mm"] < 0.6, "{organ}: {}", d["recon.mean_mm"]);
         assert!(d["seen.mean_mm"] < 0.15, "{organ}: {}", d["seen.mean_mm"]);
-        assert!(
-            d["recon.mean_mm"] <= p["recon.mean_mm"],
-            "{organ}: dff {} vs projective {}",
-            d["recon.mean_mm"],
-            p["recon.mean_mm"]
-        );
+        for key in ["recon.mean_mm", "recon.vertex_seen_mm"] {
+            assert!(
+                d[key] <= p[key],
+                "{organ}, {key}: dff {} vs projective {}",
+                d[key],
+                p[key]
+            );
+        }
         if organ == "heart" {
             // The export: the coloured template as PLY.
             let ply =

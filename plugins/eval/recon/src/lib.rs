@@ -8,6 +8,8 @@
 //! | `recon.p95_mm` | 95th percentile (nearest rank), mm |
 //! | `recon.unscored_pct` | frames with no point to score (lost track, model out of view), % |
 //! | `recon.drift_mm` | material drift of the surfels or mesh vertices (with `rest_points_gt` and `depth_gt`), mm |
+//! | `recon.vertex_mm` | with `vertex_error`: mean distance of each mesh vertex from the GT vertex it tracks, mm |
+//! | `recon.vertex_seen_mm` | the same over the GT vertices the true camera sees (with `depth_gt` and `pose_gt`), mm |
 //!
 //! Material drift follows each surfel of a model (by its id), or each vertex of a mesh (by its
 //! index: a deformed template), over the frames: where it projects
@@ -43,6 +45,9 @@ pub struct Params {
     /// Material drift: a surfel is scored where its depth is within this of the true depth at its
     /// pixel, mm.
     pub drift_max_depth_gap_mm: f32,
+    /// The `mesh` input is a deformed copy of the GT mesh (a template that is the phantom's rest
+    /// surface): vertex i tracks GT vertex i, and `vertex_mm` is the mean distance between them.
+    pub vertex_error: bool,
 }
 
 impl Default for Params {
@@ -51,6 +56,7 @@ impl Default for Params {
             color_max_mm: 2.0,
             prefix: "recon".into(),
             drift_max_depth_gap_mm: 1.0,
+            vertex_error: false,
         }
     }
 }
@@ -412,6 +418,63 @@ pub fn score(points: &[V3], gt: &Mesh) -> Result<(ReconScores, Vec<f32>), String
     ))
 }
 
+/// Mean distance between the points of a deformed copy of `gt` (`points`, in `gt`'s frame) and
+/// the GT vertices they track (vertex i to vertex i): the error of tracked surface points
+/// against their true positions (method.md 7), tangential sliding included.
+pub fn vertex_error(points: &[V3], gt: &Mesh, from_mesh: bool) -> Result<f64, String> {
+    if !from_mesh {
+        return Err(
+            "`vertex_error` needs the `mesh` input (a deformed copy of the GT mesh)".into(),
+        );
+    }
+    if points.len() != gt.vertices.len() {
+        return Err(format!(
+            "`vertex_error`: the mesh has {} vertices and the GT mesh {}: it is not a deformed copy",
+            points.len(),
+            gt.vertices.len()
+        ));
+    }
+    let sum: f64 = points
+        .iter()
+        .zip(&gt.vertices)
+        .map(|(p, g)| {
+            let d = sub(*p, *g);
+            (dot(d, d) as f64).sqrt()
+        })
+        .sum();
+    Ok(sum / points.len().max(1) as f64)
+}
+
+/// Which vertices of `gt` (world frame) the camera at `world_from_camera` sees: in the image and
+/// within `max_gap` mm of the true depth at their pixel (in front of the surface, not behind a
+/// fold).
+pub fn seen_vertices(
+    gt: &Mesh,
+    world_from_camera: &Isometry3<f64>,
+    depth: &DepthMap,
+    max_gap: f32,
+) -> Vec<bool> {
+    let (w, h) = (depth.map.width as usize, depth.map.height as usize);
+    let c = &depth.calib;
+    let cfw = world_from_camera.inverse();
+    gt.vertices
+        .iter()
+        .map(|v| {
+            let p = cfw * Point3::new(v[0] as f64, v[1] as f64, v[2] as f64);
+            if p.z <= 0.0 || depth.map.data.len() != w * h {
+                return false;
+            }
+            let u = (c.fx * p.x / p.z + c.cx).round();
+            let r = (c.fy * p.y / p.z + c.cy).round();
+            if !(u >= 0.0 && r >= 0.0 && (u as usize) < w && (r as usize) < h) {
+                return false;
+            }
+            let z = depth.map.data[r as usize * w + u as usize] as f64;
+            (p.z - z).abs() <= max_gap as f64
+        })
+        .collect()
+}
+
 /// Blue (0) to red (`max`) through green.
 fn error_color(d: f32, max: f32) -> [u8; 3] {
     let t = (d / max.max(1e-6)).clamp(0.0, 1.0);
@@ -496,6 +559,31 @@ impl Node for EvalRecon {
         ];
         let rest = inputs.opt::<VertexMap>("rest_points_gt")?;
         let depth = inputs.opt::<DepthMap>("depth_gt")?;
+        if self.params.vertex_error {
+            let v = vertex_error(points, gt, inputs.opt::<Mesh>("mesh")?.is_some())
+                .map_err(NodeError::msg)?;
+            values.push((k("vertex_mm"), v));
+            // The same over the GT vertices the true camera sees.
+            if let (Some(depth), Some(g)) = (depth, pose_gt) {
+                let seen = seen_vertices(
+                    gt,
+                    &g.world_from_camera,
+                    depth,
+                    self.params.drift_max_depth_gap_mm,
+                );
+                let n = seen.iter().filter(|&&s| s).count();
+                if n > 0 {
+                    let sum: f64 = points
+                        .iter()
+                        .zip(&gt.vertices)
+                        .zip(&seen)
+                        .filter(|(_, &s)| s)
+                        .map(|((p, q), _)| (dot(sub(*p, *q), sub(*p, *q)) as f64).sqrt())
+                        .sum();
+                    values.push((k("vertex_seen_mm"), sum / n as f64));
+                }
+            }
+        }
         // What keeps its identity over frames: a model's surfels by id, a mesh's vertices by
         // index (a deformed template); a point cloud has none.
         let followed: Option<(&[V3], std::borrow::Cow<[u64]>)> = match model {
@@ -711,6 +799,69 @@ mod tests {
             points: vec![[0.0; 3]; 12],
         };
         assert!(d.frame(&f2, &[1, 2, 3, 4, 5], &depth, &small, 1.0).is_err());
+    }
+
+    #[test]
+    fn vertex_error_follows_vertices_by_index() {
+        let gt = plane();
+        // Every vertex slid 0.3 mm along the plane and lifted 0.4 mm off it: 0.5 mm from the
+        // vertex it tracks, though only 0.4 mm from the surface.
+        let moved: Vec<V3> = gt
+            .vertices
+            .iter()
+            .map(|v| [v[0] + 0.3, v[1], v[2] + 0.4])
+            .collect();
+        let e = vertex_error(&moved, &gt, true).unwrap();
+        assert!((e - 0.5).abs() < 1e-5, "{e}");
+        let inside: Vec<V3> = moved.iter().filter(|p| p[0] <= 50.0).copied().collect();
+        let (s, _) = score(&inside, &gt).unwrap();
+        assert!((s.mean_mm - 0.4).abs() < 1e-4, "{}", s.mean_mm);
+        assert!(vertex_error(&moved[1..], &gt, true)
+            .unwrap_err()
+            .contains("not a deformed copy"));
+        assert!(vertex_error(&moved, &gt, false)
+            .unwrap_err()
+            .contains("`mesh` input"));
+        // Seen: the plane (z = 100, x and y in -50..50) from the origin through a 40x30 camera
+        // with f = 40, which covers x, y in -50..50 and -37.5..37.5 at that depth; the true
+        // depth is 100 except for a fold 5 mm in front over x > 20, which hides the plane there.
+        use misslam_framework::{FloatMap, StereoCalib};
+        let (w, h) = (40u32, 30u32);
+        let depth = DepthMap {
+            map: FloatMap {
+                width: w,
+                height: h,
+                data: (0..w * h)
+                    .map(|i| {
+                        if (i % w) as f32 - 19.5 > 8.0 {
+                            95.0
+                        } else {
+                            100.0
+                        }
+                    })
+                    .collect(),
+            },
+            calib: StereoCalib {
+                width: w,
+                height: h,
+                fx: 40.0,
+                fy: 40.0,
+                cx: 19.5,
+                cy: 14.5,
+                cx_right: 19.5,
+                baseline_mm: 5.0,
+            },
+        };
+        let seen = seen_vertices(&gt, &Isometry3::identity(), &depth, 1.0);
+        for (v, s) in gt.vertices.iter().zip(&seen) {
+            let u = 40.0 * v[0] / 100.0 + 19.5;
+            let r = 40.0 * v[1] / 100.0 + 14.5;
+            let in_view =
+                u.round() >= 0.0 && u.round() < 40.0 && r.round() >= 0.0 && r.round() < 30.0;
+            let hidden = u.round() - 19.5 > 8.0;
+            assert_eq!(*s, in_view && !hidden, "{v:?}");
+        }
+        assert!(seen.iter().filter(|&&s| s).count() > 30);
     }
 
     #[test]
