@@ -194,7 +194,7 @@ fn keypoint_correspondences_keep_the_template_from_sliding() {
         "exact depth, 10 frames: drift {a:.3} mm with E_corr, {b:.3} mm without; recon {:.3} / {:.3} mm",
         with["recon.mean_mm"], without["recon.mean_mm"]
     );
-    // Measured 0.303 against 0.368 mm.
+    // Measured 0.163 against 0.356 mm (persistent keypoints; 0.229 matched frame to frame).
     assert!(a < 0.9 * b, "drift {a} with E_corr, {b} without");
     assert!(with["recon.mean_mm"] < 0.3, "{}", with["recon.mean_mm"]);
 }
@@ -203,12 +203,11 @@ fn keypoint_correspondences_keep_the_template_from_sliding() {
 fn dff_is_at_least_as_accurate_as_back_projection_on_the_heart_and_kidney() {
     // The thesis's Table 3.1 comparison on the graph as shipped (ELAS depth, the ORB tracker's
     // pose and keypoint correspondences, sensor noise), the same 20 frames for both data terms.
-    // Measured (whole template's distance to the surface, DFF vs back-projection): heart 0.331 vs
-    // 0.381 mm, kidney 0.191 vs 0.222; over 40 frames 0.427 vs 0.497 and 0.191 vs 0.216. The
-    // error of the tracked vertices where seen (`recon.vertex_seen_mm`): heart 0.473 vs 0.521,
-    // kidney 0.254 vs 0.388. On the liver back-projection is ahead in the surface distance
-    // (0.254 vs 0.242 mm) and level where seen (0.443 vs 0.434; over 40 frames 0.524 vs 0.577),
-    // so it is not checked here.
+    // Measured (whole template's distance to the surface, DFF vs back-projection): heart 0.305 vs
+    // 0.364 mm, kidney 0.182 vs 0.222; over 40 frames 0.342 vs 0.415 and 0.189 vs 0.215. The
+    // error of the tracked vertices where seen (`recon.vertex_seen_mm`): heart 0.332 vs 0.360,
+    // kidney 0.231 vs 0.403. On the liver back-projection is ahead in the surface distance
+    // (over 40 frames 0.268 vs 0.255 mm), so it is not checked here.
     for organ in ["heart", "kidney"] {
         let mut r = BTreeMap::new();
         let mut out = BTreeMap::new();
@@ -259,8 +258,8 @@ fn dff_is_at_least_as_accurate_as_back_projection_on_the_heart_and_kidney() {
 fn keypoints_hold_the_template_to_the_tissue_on_stereo_depth() {
     // The shipped graph with and without its ORB correspondences, on the liver, where they once
     // made the template slide (9.5 mm of drift over 40 frames: keypoints anchored off the surface
-    // flattened the node affines). Measured over 20 frames: drift 0.160 mm with E_corr, 0.576
-    // without; whole template 0.254 against 0.242 mm.
+    // flattened the node affines). Measured over 20 frames: drift 0.112 mm with E_corr, 0.576
+    // without; whole template 0.259 against 0.242 mm.
     let sets = ["graph.frames.count=20", "src.scene=liver"];
     let (with, _) = run("graphs/template_dff.toml", &sets, "template_liver_corr");
     let mut off = sets.to_vec();
@@ -273,7 +272,7 @@ fn keypoints_hold_the_template_to_the_tissue_on_stereo_depth() {
     );
     assert!(a < 0.7 * b, "drift {a} with E_corr, {b} without");
     assert!(
-        with["recon.mean_mm"] < 1.1 * without["recon.mean_mm"],
+        with["recon.mean_mm"] < 1.15 * without["recon.mean_mm"],
         "recon {} with E_corr, {} without",
         with["recon.mean_mm"],
         without["recon.mean_mm"]

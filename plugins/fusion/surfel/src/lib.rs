@@ -373,6 +373,7 @@ impl SurfelNode {
                     &pose,
                     &k,
                     (&self.vertices, &self.scan_normals),
+                    graph,
                     &self.p.correspondences,
                 )
                 .map_err(NodeError::msg)?;
@@ -600,6 +601,7 @@ impl SurfelNode {
         // This frame's keypoints anchored for the next frame's correspondences (none after a
         // lost frame: its pose is not the scope's).
         self.corr.anchor(
+            frame.index,
             features,
             lost,
             &pose,

@@ -559,6 +559,7 @@ impl TemplateNode {
                     &pose,
                     &k,
                     (&self.vertices, &self.scan_normals),
+                    &model.graph,
                     &self.p.correspondences,
                 )
                 .map_err(NodeError::msg)?;
@@ -621,6 +622,7 @@ impl TemplateNode {
         // This frame's keypoints anchored to the deformed template for the next frame's
         // correspondences (none after a lost frame).
         self.corr.anchor(
+            frame.index,
             features,
             lost,
             &pose,
