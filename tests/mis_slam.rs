@@ -192,7 +192,8 @@ fn a_sweep_over_the_same_tissue_keeps_one_surfel_per_sample() {
 #[test]
 fn the_model_and_the_graph_stay_within_their_caps() {
     // A wide, quick sweep keeps showing new tissue: uncapped, the graph grows from its 75 first
-    // nodes and the model past 5,000 surfels; capped, both hold and the run goes on.
+    // nodes and the model past 5,000 surfels; capped, both hold (and the persistent keypoint
+    // anchors, `correspondences.max_anchors`) and the run goes on.
     let wide = [
         "graph.frames.count=12",
         "src.sweep_mm=30",
@@ -200,17 +201,24 @@ fn the_model_and_the_graph_stay_within_their_caps() {
     ];
     let free = run(&wide, "mis_slam_uncapped");
     let mut capped_sets = wide.to_vec();
-    capped_sets.extend(["fusion.max_surfels=4500", "fusion.max_nodes=80"]);
+    capped_sets.extend([
+        "fusion.max_surfels=4500",
+        "fusion.max_nodes=80",
+        "fusion.correspondences.max_anchors=100",
+    ]);
     let capped = run(&capped_sets, "mis_slam_caps");
     eprintln!(
-        "uncapped: {} surfels, {} nodes; capped: {} surfels, {} nodes",
+        "uncapped: {} surfels, {} nodes, {} keypoint anchors; capped: {} surfels, {} nodes, {} anchors",
         free["fusion.surfels"],
         free["fusion.nodes"],
+        free["fusion.anchors"],
         capped["fusion.surfels"],
-        capped["fusion.nodes"]
+        capped["fusion.nodes"],
+        capped["fusion.anchors"]
     );
     assert!(free["fusion.nodes"] > 100.0 && free["fusion.surfels"] > 5000.0);
     assert!(capped["fusion.surfels"] <= 4500.0);
+    assert!(free["fusion.anchors"] > 100.0 && capped["fusion.anchors"] <= 100.0);
     // The cap stops growth; one growth step may overshoot it by the nodes it adds at once.
     assert!(
         capped["fusion.nodes"] <= 80.0 + 15.0,

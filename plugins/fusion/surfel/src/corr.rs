@@ -132,6 +132,9 @@ impl CorrParams {
         if !(self.ratio > 0.0 && self.ratio <= 1.0) {
             return Err(format!("`ratio` must lie in (0, 1], got {}", self.ratio));
         }
+        if self.max_anchors == 0 {
+            return Err("`max_anchors` must be at least 1 (0 keeps no keypoint: set `enabled = false` to go without)".into());
+        }
         Ok(())
     }
 }
@@ -1226,5 +1229,10 @@ mod tests {
             ..CorrParams::default()
         };
         assert!(p.validate().unwrap_err().contains("ratio"));
+        let p = CorrParams {
+            max_anchors: 0,
+            ..CorrParams::default()
+        };
+        assert!(p.validate().unwrap_err().contains("max_anchors"));
     }
 }

@@ -380,6 +380,9 @@ impl SurfelNode {
             metrics
                 .values
                 .insert("fusion.correspondences".into(), corrs.len() as f64);
+            metrics
+                .values
+                .insert("fusion.anchors".into(), self.corr.anchors() as f64);
             self.solves += 1;
             self.corr_used += corrs.len() as u64;
             let problem = Problem {
@@ -662,6 +665,7 @@ impl Node for SurfelNode {
             "fusion.correspondences_per_solve",
             self.corr_used as f64 / self.solves.max(1) as f64,
         );
+        ctx.report_eval("fusion.anchors", self.corr.anchors() as f64);
         Ok(())
     }
 
@@ -745,7 +749,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
             PortSpec::new(
                 "info",
                 PortType::Metrics,
-                "fusion.surfels, nodes, fused, added, removed, visible, solve_ms, iterations",
+                "fusion.surfels, nodes, fused, added, removed, visible, solve_ms, iterations, correspondences, anchors",
             ),
         ],
         build,

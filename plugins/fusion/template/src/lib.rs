@@ -566,6 +566,9 @@ impl TemplateNode {
             metrics
                 .values
                 .insert("template.correspondences".into(), corrs.len() as f64);
+            metrics
+                .values
+                .insert("template.anchors".into(), self.corr.anchors() as f64);
             let problem = Problem {
                 model: self.subset.view(),
                 scan: match self.p.data_term {
@@ -593,6 +596,7 @@ impl TemplateNode {
                 .map_err(NodeError::msg)?;
             for (key, v) in [
                 ("template.iterations", info.iterations as f64),
+                ("template.rejected_steps", info.rejected_steps as f64),
                 ("template.cost_before", info.cost_before),
                 ("template.cost_after", info.cost_after),
                 ("template.data_terms", info.data_terms as f64),
@@ -824,7 +828,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
             PortSpec::new(
                 "info",
                 PortType::Metrics,
-                "template.visible, nodes, field_ms, voxels, solve_ms, iterations, costs",
+                "template.visible, nodes, field_ms, voxels, solve_ms, iterations, rejected_steps, costs, correspondences, anchors",
             ),
         ],
         build,
