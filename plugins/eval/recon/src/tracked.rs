@@ -1,0 +1,133 @@
+//! What follows tissue points over time: the material drift of surfels or mesh vertices
+//! ([`Drift`]) and the error of a deformed template's vertices against the GT vertices they track
+//! ([`vertex_error`], over the vertices the true camera sees: [`seen_vertices`]).
+
+use crate::{bilinear, dot, sub, V3};
+use misslam_framework::nalgebra::{Isometry3, Point3};
+use misslam_framework::{DepthMap, Mesh, VertexMap};
+
+/// The material drift of surfels followed by id (see the module doc).
+#[derive(Default)]
+pub struct Drift {
+    /// The rest-shape point under each surfel when first scored.
+    first: std::collections::HashMap<u64, V3>,
+}
+
+impl Drift {
+    /// Scores one frame: `camera` the surfels in the camera frame (scope-relative), `ids`
+    /// theirs, the true depth and rest-shape points of the view. Returns the mean drift over the
+    /// surfels scored before (None when there are none yet).
+    pub fn frame(
+        &mut self,
+        camera: &[V3],
+        ids: &[u64],
+        depth: &DepthMap,
+        rest: &VertexMap,
+        max_gap: f32,
+    ) -> Result<Option<f64>, String> {
+        let (w, h) = (depth.map.width as usize, depth.map.height as usize);
+        if depth.map.data.len() != w * h
+            || (rest.width, rest.height) != (depth.map.width, depth.map.height)
+            || rest.points.len() != w * h
+        {
+            return Err(format!(
+                "depth_gt ({w}x{h}) and rest_points_gt ({}x{}) do not describe one view",
+                rest.width, rest.height
+            ));
+        }
+        if ids.len() != camera.len() {
+            return Err(format!(
+                "the model has {} ids for {} surfels",
+                ids.len(),
+                camera.len()
+            ));
+        }
+        let c = &depth.calib;
+        let (mut sum, mut n) = (0.0f64, 0usize);
+        for (p, id) in camera.iter().zip(ids) {
+            if p[2].is_nan() || p[2] <= 0.0 {
+                continue;
+            }
+            let u = (c.fx * p[0] as f64 / p[2] as f64 + c.cx) as f32;
+            let v = (c.fy * p[1] as f64 / p[2] as f64 + c.cy) as f32;
+            if !(u >= 0.0 && v >= 0.0 && (u as usize) + 1 < w && (v as usize) + 1 < h) {
+                continue;
+            }
+            let z = depth.map.data[v.round() as usize * w + u.round() as usize];
+            let gap = (p[2] - z).abs();
+            if gap.is_nan() || gap > max_gap {
+                continue;
+            }
+            let Some(r) = bilinear(&rest.points, w, u, v) else {
+                continue;
+            };
+            match self.first.get(id) {
+                Some(r0) => {
+                    sum += dot(sub(r, *r0), sub(r, *r0)).sqrt() as f64;
+                    n += 1;
+                }
+                None => {
+                    self.first.insert(*id, r);
+                }
+            }
+        }
+        Ok((n > 0).then(|| sum / n as f64))
+    }
+}
+
+/// Mean distance between the points of a deformed copy of `gt` (`points`, in `gt`'s frame) and
+/// the GT vertices they track (vertex i to vertex i): the error of tracked surface points
+/// against their true positions (method.md 7), tangential sliding included.
+pub fn vertex_error(points: &[V3], gt: &Mesh, from_mesh: bool) -> Result<f64, String> {
+    if !from_mesh {
+        return Err(
+            "`vertex_error` needs the `mesh` input (a deformed copy of the GT mesh)".into(),
+        );
+    }
+    if points.len() != gt.vertices.len() {
+        return Err(format!(
+            "`vertex_error`: the mesh has {} vertices and the GT mesh {}: it is not a deformed copy",
+            points.len(),
+            gt.vertices.len()
+        ));
+    }
+    let sum: f64 = points
+        .iter()
+        .zip(&gt.vertices)
+        .map(|(p, g)| {
+            let d = sub(*p, *g);
+            (dot(d, d) as f64).sqrt()
+        })
+        .sum();
+    Ok(sum / points.len().max(1) as f64)
+}
+
+/// Which vertices of `gt` (world frame) the camera at `world_from_camera` sees: in the image and
+/// within `max_gap` mm of the true depth at their pixel (in front of the surface, not behind a
+/// fold).
+pub fn seen_vertices(
+    gt: &Mesh,
+    world_from_camera: &Isometry3<f64>,
+    depth: &DepthMap,
+    max_gap: f32,
+) -> Vec<bool> {
+    let (w, h) = (depth.map.width as usize, depth.map.height as usize);
+    let c = &depth.calib;
+    let cfw = world_from_camera.inverse();
+    gt.vertices
+        .iter()
+        .map(|v| {
+            let p = cfw * Point3::new(v[0] as f64, v[1] as f64, v[2] as f64);
+            if p.z <= 0.0 || depth.map.data.len() != w * h {
+                return false;
+            }
+            let u = (c.fx * p.x / p.z + c.cx).round();
+            let r = (c.fy * p.y / p.z + c.cy).round();
+            if !(u >= 0.0 && r >= 0.0 && (u as usize) < w && (r as usize) < h) {
+                return false;
+            }
+            let z = depth.map.data[r as usize * w + u as usize] as f64;
+            (p.z - z).abs() <= max_gap as f64
+        })
+        .collect()
+}
