@@ -68,7 +68,7 @@ pub struct CorrParams {
     /// the last frame's are matched. `mis_slam`, 1,000 frames: material drift 0.77 mm (300),
     /// 0.92 (30), 2.80 (0), 3.85 without correspondences.
     pub keep_frames: u32,
-    /// Most anchors kept; beyond it those matched least often, then longest unseen, go.
+    /// Most anchors kept; beyond it those unseen longest, then matched least often, go.
     pub max_anchors: usize,
 }
 
@@ -367,13 +367,14 @@ impl CorrTracker {
             // The features changed descriptor kind: start over with this frame's.
             map = fresh;
         }
-        // Over the cap, those matched least often and then longest unseen go.
+        // Over the cap, those unseen longest and then matched least often go: the tissue in
+        // view keeps its anchors, and new tissue can still get some.
         if map.len() > p.max_anchors {
             let mut order: Vec<usize> = (0..map.len()).collect();
             order.sort_by_key(|&i| {
                 (
-                    std::cmp::Reverse(map.matched[i]),
                     std::cmp::Reverse(map.last_seen[i]),
+                    std::cmp::Reverse(map.matched[i]),
                 )
             });
             order.truncate(p.max_anchors);

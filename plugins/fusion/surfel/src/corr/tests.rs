@@ -296,7 +296,27 @@ fn matched_anchors_persist_with_their_first_canonical_point() {
             );
             counts.push(t.anchors());
         }
-        (corrs, counts)
+        // Frame 9: new tissue, keypoint E, far from the others.
+        let f = features(&[[-7.0, 7.0, 60.0]], &k);
+        t.correspondences(9, Some(&f), &pose, &k, (&[], &[]), &graph, &p)
+            .unwrap();
+        t.anchor(
+            9,
+            Some(&f),
+            false,
+            &pose,
+            &canon,
+            &normals,
+            &canon,
+            &bindings,
+            &graph,
+            &[],
+            &k,
+            &p,
+        );
+        counts.push(t.anchors());
+        let last_seen = t.anchors.last_seen.clone();
+        (corrs, counts, last_seen)
     };
     let x_of = |corrs: &[Correspondence], target_x: f64| {
         corrs
@@ -306,21 +326,24 @@ fn matched_anchors_persist_with_their_first_canonical_point() {
             .unwrap()
     };
     // Persistent: on frame 2, A is asked to go from where it was anchored on frame 0.
-    let (corrs, counts) = run(5, 100);
+    let (corrs, counts, _) = run(5, 100);
     assert_eq!(corrs.len(), 2);
     assert!((x_of(&corrs, 1.6) - 0.8).abs() < 1e-4);
     assert!((x_of(&corrs, -2.8) + 3.6).abs() < 1e-4);
     // Frame 0: A, B, C. Frame 1: A and B matched and kept, C dropped (never matched), D
-    // added. Frame 2: D dropped. Then A and B stay until unmatched for more than 5 frames.
-    assert_eq!(counts, vec![3, 3, 2, 2, 2, 2, 2, 2, 0]);
+    // added. Frame 2: D dropped. Then A and B stay until unmatched for more than 5 frames;
+    // frame 9 adds E.
+    assert_eq!(counts, vec![3, 3, 2, 2, 2, 2, 2, 2, 0, 1]);
     // Frame to frame: from where it was on frame 1.
-    let (corrs, counts) = run(0, 100);
+    let (corrs, counts, _) = run(0, 100);
     assert!((x_of(&corrs, 1.6) - 1.2).abs() < 1e-4);
     assert_eq!(counts[..3], [3, 3, 2]);
     assert_eq!(counts[3], 0);
-    // A cap of 1 keeps one anchor matched before.
-    let (_, counts) = run(5, 1);
-    assert_eq!(counts[..3], [1, 1, 1]);
+    // A cap of 2: on frame 1 A and B (matched) stay and D (new) goes. On frame 9, with A and B
+    // still within `keep_frames` but unseen since frame 2, the new tissue's E gets its anchor.
+    let (_, counts, last_seen) = run(20, 2);
+    assert_eq!(counts, vec![2, 2, 2, 2, 2, 2, 2, 2, 2, 2]);
+    assert!(last_seen.contains(&9), "{last_seen:?}");
 }
 
 #[test]
