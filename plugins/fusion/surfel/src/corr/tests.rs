@@ -253,16 +253,14 @@ fn matched_anchors_persist_with_their_first_canonical_point() {
             ..CorrParams::default()
         };
         let mut t = CorrTracker::default();
-        let mut counts = Vec::new();
-        let mut corrs = Vec::new();
-        for n in 0..3u64 {
-            let f = frame(n as usize);
-            corrs = t
-                .correspondences(n, Some(&f), &pose, &k, (&[], &[]), &graph, &p)
+        // One frame: match, then anchor; returns the correspondences.
+        let step = |t: &mut CorrTracker, n: u64, f: Option<&Features>| {
+            let c = t
+                .correspondences(n, f, &pose, &k, (&[], &[]), &graph, &p)
                 .unwrap();
             t.anchor(
                 n,
-                Some(&f),
+                f,
                 false,
                 &pose,
                 &canon,
@@ -274,46 +272,21 @@ fn matched_anchors_persist_with_their_first_canonical_point() {
                 &k,
                 &p,
             );
+            c
+        };
+        let mut counts = Vec::new();
+        let mut corrs = Vec::new();
+        for n in 0..3u64 {
+            corrs = step(&mut t, n, Some(&frame(n as usize)));
             counts.push(t.anchors());
         }
         // Six frames with no keypoints.
         for n in 3..9u64 {
-            t.correspondences(n, None, &pose, &k, (&[], &[]), &graph, &p)
-                .unwrap();
-            t.anchor(
-                n,
-                None,
-                false,
-                &pose,
-                &canon,
-                &normals,
-                &canon,
-                &bindings,
-                &graph,
-                &[],
-                &k,
-                &p,
-            );
+            step(&mut t, n, None);
             counts.push(t.anchors());
         }
         // Frame 9: new tissue, keypoint E, far from the others.
-        let f = features(&[[-7.0, 7.0, 60.0]], &k);
-        t.correspondences(9, Some(&f), &pose, &k, (&[], &[]), &graph, &p)
-            .unwrap();
-        t.anchor(
-            9,
-            Some(&f),
-            false,
-            &pose,
-            &canon,
-            &normals,
-            &canon,
-            &bindings,
-            &graph,
-            &[],
-            &k,
-            &p,
-        );
+        step(&mut t, 9, Some(&features(&[[-7.0, 7.0, 60.0]], &k)));
         counts.push(t.anchors());
         let last_seen = t.anchors.last_seen.clone();
         (corrs, counts, last_seen)
