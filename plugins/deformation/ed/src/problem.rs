@@ -188,6 +188,10 @@ pub struct Weights {
     /// Share of w_corr along the observed surface normal, for correspondences that carry one
     /// (1: the full 3D distance of method.md; 0: only where along the surface).
     pub corr_normal: f64,
+    /// w_m: motion prior ||t_j - t_j^0||^2 on the translation of each solved node a model point
+    /// binds, t_j^0 its value when the solve starts (the previous frame's), mm^-2. It holds what
+    /// the data cannot see (a node sliding along the surface) where the previous frame left it.
+    pub motion: f64,
     /// w_r: rotation prior ||log(R~^T R)||^2 (rad^-2), when the pose is solved.
     pub pose_rot: f64,
     /// w_p: translation prior ||T - T~||^2 (mm^-2), when the pose is solved.
@@ -204,6 +208,7 @@ impl Default for Weights {
             field: 1.0,
             corr: 1.0,
             corr_normal: 1.0,
+            motion: 0.0,
             pose_rot: 1e4,
             pose_trans: 10.0,
         }
@@ -337,6 +342,7 @@ impl SolverParams {
             ("weights.field", w.field),
             ("weights.corr", w.corr),
             ("weights.corr_normal", w.corr_normal),
+            ("weights.motion", w.motion),
             ("weights.pose_rot", w.pose_rot),
             ("weights.pose_trans", w.pose_trans),
             ("initial_lambda", self.initial_lambda),

@@ -97,6 +97,11 @@ pub struct Solver {
     data: DataAssembly,
     dx: Vec<f64>,
     saved: Vec<[f64; 12]>,
+    /// E_m's reference: (node, translation at the start of the solve) of each solved node a model
+    /// point binds.
+    motion_ref: Vec<(u32, Vector3<f64>)>,
+    /// Per node: whether a model point binds it (E_m's scratch).
+    motion_bound: Vec<bool>,
 }
 
 /// The pose retraction the solver uses: world_from_camera * exp(xi), xi = (rho, omega).
@@ -180,6 +185,12 @@ impl Solver {
         }
         for &(j, k) in &set.reg_edges {
             total += w.reg * reg_residual(graph, j, k).norm_squared();
+        }
+        if w.motion > 0.0 {
+            for (j, t0) in &self.motion_ref {
+                let p = &graph.warp[*j as usize];
+                total += w.motion * (Vector3::new(p[3], p[7], p[11]) - t0).norm_squared();
+            }
         }
         if set.data {
             let cfw = pose.inverse();
@@ -440,6 +451,24 @@ impl Solver {
                 sys.add_kron_identity(sj, sk, &u, &E4, -w.reg);
             }
         }
+        // E_m: r = t_j - t_j^0.
+        if w.motion > 0.0 {
+            for (j, t0) in &self.motion_ref {
+                let s = sys.slot[*j as usize];
+                if s == u32::MAX {
+                    continue;
+                }
+                let p = &graph.warp[*j as usize];
+                let r = Vector3::new(p[3], p[7], p[11]) - t0;
+                let mut h = [0.0; 144];
+                for a in 0..3 {
+                    let q = a * 4 + 3;
+                    h[q * 12 + q] = w.motion;
+                    sys.grad[12 * s as usize + q] += w.motion * r[a];
+                }
+                sys.add_diag(s, &h);
+            }
+        }
         if set.data && !reference {
             self.data
                 .assemble(sys, graph, problem, pose, set.pose, params, &self.cur);
@@ -583,6 +612,7 @@ impl Solver {
         params: &SolverParams,
         reference: bool,
     ) -> Result<DenseLinearization, String> {
+        self.set_motion_reference(graph, problem, set, params);
         let key = self.pattern(graph, problem, set);
         self.system.prepare(graph.len(), &key)?;
         if set.data {
@@ -620,6 +650,34 @@ impl Solver {
         self.cur.assoc.len()
     }
 
+    /// E_m's reference: the translations of the solved nodes some model point binds, now.
+    fn set_motion_reference(
+        &mut self,
+        graph: &EdGraph,
+        problem: &Problem,
+        set: &SolveSet,
+        params: &SolverParams,
+    ) {
+        self.motion_ref.clear();
+        if !set.data || params.weights.motion == 0.0 {
+            return;
+        }
+        let bound = &mut self.motion_bound;
+        bound.clear();
+        bound.resize(graph.len(), false);
+        for b in problem.model.bindings {
+            for &x in &b.nodes[..b.len as usize] {
+                bound[x as usize] = true;
+            }
+        }
+        for &j in &set.free {
+            if bound[j as usize] {
+                let p = &graph.warp[j as usize];
+                self.motion_ref.push((j, Vector3::new(p[3], p[7], p[11])));
+            }
+        }
+    }
+
     /// Runs the loop on `set`, updating `graph.warp` and `pose` in place.
     pub fn solve(
         &mut self,
@@ -655,6 +713,7 @@ impl Solver {
             }
         }
         let builds0 = self.system.symbolic_builds;
+        self.set_motion_reference(graph, problem, set, params);
         let key = self.pattern(graph, problem, set);
         self.system.prepare(graph.len(), &key)?;
         let ta = Instant::now();
