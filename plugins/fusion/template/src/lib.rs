@@ -19,6 +19,7 @@
 
 pub mod align;
 pub mod gpu;
+pub mod scan_mesh;
 
 use align::{align_to_field, AlignOptions};
 use gpu::DffKernel;
@@ -38,6 +39,7 @@ use misslam_framework::{
     PortType, Pose, Registry, StereoFrame, TrackingState, TypedPlugin,
 };
 use misslam_fusion_surfel::corr::{self, CorrParams};
+use scan_mesh::{scan_mesh, ScanTemplateParams};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
@@ -142,6 +144,10 @@ pub struct Params {
     /// The pre-operative mesh (OBJ or PLY in mm, glTF in metres), relative to the working
     /// directory; without it the `template` input is read on the first frame.
     pub template_path: Option<PathBuf>,
+    /// Without a pre-operative mesh: the first frame's scan, triangulated on a pixel grid, is
+    /// the template (e.g. `template_from_scan = { stride_px = 4, max_edge_mm = 3.0 }`); the
+    /// given pose places it (it is already on the scan), and the later frames deform it.
+    pub template_from_scan: Option<ScanTemplateParams>,
     /// "dff" (distance field) or "projective" (back-projection).
     pub data_term: DataTerm,
     /// The distance field of each frame (with `data_term = "dff"`).
@@ -174,6 +180,7 @@ impl Default for Params {
     fn default() -> Self {
         Params {
             template_path: None,
+            template_from_scan: None,
             data_term: DataTerm::Dff,
             field: FieldParams::default(),
             align: AlignParams::default(),
@@ -206,6 +213,16 @@ impl Params {
         self.solver
             .validate()
             .map_err(|m| BuildError::param("solver", m))?;
+        if let Some(t) = &self.template_from_scan {
+            t.validate()
+                .map_err(|m| BuildError::param("template_from_scan", m))?;
+            if self.template_path.is_some() {
+                return Err(BuildError::param(
+                    "template_from_scan",
+                    "set either template_path or template_from_scan, not both",
+                ));
+            }
+        }
         positive(self.field.voxel_mm, "field.voxel_mm")?;
         positive(self.field.truncation_mm, "field.truncation_mm")?;
         if self.field.max_voxels == 0 {
@@ -475,11 +492,25 @@ impl TemplateNode {
         );
         let mut metrics = Metrics::default();
         if self.model.is_none() {
-            let template = match &self.file_template {
-                Some(t) => t.clone(),
-                None => inputs.opt::<Mesh>("template")?.cloned().ok_or_else(|| {
+            let template = match (&self.file_template, &self.p.template_from_scan) {
+                (Some(t), _) => t.clone(),
+                (None, Some(sp)) => {
+                    // The scan is in the camera frame; the tracker's pose puts it in the world,
+                    // where the given placement (identity unless set) leaves it.
+                    let m = scan_mesh(&self.vertices, w, h, left, &pose, sp).map_err(|e| {
+                        NodeError::msg(format!("frame {}: template_from_scan: {e}", frame.index))
+                    })?;
+                    tracing::info!(
+                        frame = frame.index,
+                        vertices = m.vertices.len(),
+                        triangles = m.triangles.len(),
+                        "template made from the first scan"
+                    );
+                    Arc::new(m)
+                }
+                (None, None) => inputs.opt::<Mesh>("template")?.cloned().ok_or_else(|| {
                     NodeError::msg(
-                        "fusion.template needs a template: set `template_path` or connect the `template` input",
+                        "fusion.template needs a template: set `template_path` or `template_from_scan`, or connect the `template` input",
                     )
                 })?,
             };
