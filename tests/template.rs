@@ -322,6 +322,43 @@ fn dff_is_at_least_as_accurate_as_back_projection_on_heart_kidney_and_liver() {
 }
 
 #[test]
+fn the_decoupled_solve_moves_the_whole_template() {
+    // The decoupled solver, swapped in by one line: level II must carry every unseen node of the
+    // template along (its default here), not only those within a few rings of the seen ones, or
+    // the far side of the beating heart stays behind. Measured over 20 frames: 0.285 mm over the
+    // whole template (batch 0.289), 1.57 mm with `level2_rings = 3`.
+    let mut r = Vec::new();
+    for rings in [None, Some(3)] {
+        let mut sets = vec![
+            "graph.frames.count=20".to_string(),
+            "fusion.solver_kind=decoupled".to_string(),
+        ];
+        if let Some(n) = rings {
+            sets.push(format!("fusion.decoupled.level2_rings={n}"));
+        }
+        let sets: Vec<&str> = sets.iter().map(String::as_str).collect();
+        let (e, _) = run(
+            "graphs/template_dff.toml",
+            &sets,
+            &format!("template_decoupled_{rings:?}"),
+        );
+        eprintln!(
+            "decoupled, level2_rings = {rings:?} (None: the default): whole template {:.3} mm, seen {:.3} mm",
+            e["recon.mean_mm"], e["seen.mean_mm"]
+        );
+        r.push(e);
+    }
+    assert!(r[0]["recon.mean_mm"] < 0.4, "{}", r[0]["recon.mean_mm"]);
+    assert!(r[0]["seen.mean_mm"] < 0.1, "{}", r[0]["seen.mean_mm"]);
+    assert!(
+        r[0]["recon.mean_mm"] < 0.5 * r[1]["recon.mean_mm"],
+        "default {} vs 3 rings {}",
+        r[0]["recon.mean_mm"],
+        r[1]["recon.mean_mm"]
+    );
+}
+
+#[test]
 fn the_motion_prior_keeps_the_liver_template_from_sliding() {
     // On its first frame the template is the tissue exactly (the phantom's frame 0 is its rest
     // shape). A solve fitted to noisy depth without E_m slides it along the surface, where the
