@@ -152,7 +152,8 @@ fn the_template_follows_exact_depth_with_either_data_term() {
         eprintln!(
             "exact depth, {dt}: seen {seen:.4} mm, whole template {all:.4} mm, drift {drift:.4} mm"
         );
-        // Measured 0.020 (dff) and 0.017 (projective) seen, 0.16 for the whole template, whose
+        // Measured 0.020 (dff) and 0.017 (projective) seen, 0.135 and 0.132 for the whole template (0.16 when level II of the
+        // decoupled solve carried only 3 rings of unseen nodes), whose
         // unseen parts only follow the graph.
         assert!(seen < 0.05, "{dt}: seen.mean_mm {seen}");
         // The template's vertices followed by index: 0.37 mm of tangential sliding with either
@@ -472,7 +473,10 @@ fn icp_recovers_a_misplaced_template() {
         e["recon.mean_mm"],
         base["recon.mean_mm"]
     );
-    // Without ICP the same misplacement stays wrong: the test above is not vacuous.
+    // Without ICP the same misplacement stays wrong: the test above is not vacuous. (The
+    // deformation itself takes out part of it: 0.210 mm against ICP's 0.137 since the decoupled
+    // solve's level II carries the whole template; more than 0.44 before, when the far side
+    // stayed where it was placed.)
     let off = exact(
         &[
             "fusion.align.translation_mm=[2.5, -2.0, 3.0]",
@@ -480,8 +484,9 @@ fn icp_recovers_a_misplaced_template() {
         ],
         "template_no_icp",
     );
+    eprintln!("without ICP: whole template {:.4} mm", off["recon.mean_mm"]);
     assert!(
-        off["recon.mean_mm"] > e["recon.mean_mm"] + 0.3,
+        off["recon.mean_mm"] > 1.3 * e["recon.mean_mm"],
         "{} vs {}",
         off["recon.mean_mm"],
         e["recon.mean_mm"]
