@@ -152,9 +152,9 @@ fn the_template_follows_exact_depth_with_either_data_term() {
         eprintln!(
             "exact depth, {dt}: seen {seen:.4} mm, whole template {all:.4} mm, drift {drift:.4} mm"
         );
-        // Measured 0.020 (dff) and 0.017 (projective) seen, 0.135 and 0.132 for the whole template (0.16 when level II of the
-        // decoupled solve carried only 3 rings of unseen nodes), whose
-        // unseen parts only follow the graph.
+        // Measured 0.020 (dff) and 0.017 (projective) seen, 0.135 and 0.132 for the whole
+        // template, whose unseen parts only follow the graph (0.16 when level II of the decoupled
+        // solve carried only 3 rings of unseen nodes).
         assert!(seen < 0.05, "{dt}: seen.mean_mm {seen}");
         // The template's vertices followed by index: 0.37 mm of tangential sliding with either
         // term (depth constrains the surface, not where on it the tissue is).
