@@ -2,6 +2,7 @@
 //! `misslam-framework`. Integration tests and examples of the workspace live in this package.
 #![deny(missing_docs)]
 
+pub mod ablate;
 pub mod bench;
 pub mod eval_cli;
 pub mod phantom_export;

@@ -60,6 +60,33 @@ enum Command {
         #[arg(long)]
         quiet: bool,
     },
+    /// Run a graph over every combination of parameter values (and seeds), each run into its
+    /// own folder, and print a table of chosen figures per variant (mean ± sd over the seeds);
+    /// `OUT/ablation.json` holds every run's figures.
+    Ablate {
+        /// The graph file (TOML).
+        graph: PathBuf,
+        /// A varied parameter and its values: `fusion.data_term=dff,projective` (commas inside
+        /// brackets, braces or quotes do not split). Repeatable: every combination runs.
+        #[arg(long = "vary", value_name = "NODE.PARAM=V1,V2,...")]
+        vary: Vec<String>,
+        /// Seeds (`graph.seed`), comma-separated: each variant runs once per seed.
+        #[arg(long, value_delimiter = ',')]
+        seeds: Vec<u64>,
+        /// An override applied to every run. Repeatable.
+        #[arg(long = "set", value_name = "NODE.PARAM=VALUE")]
+        set: Vec<String>,
+        /// Process at most N frames per run.
+        #[arg(long)]
+        frames: Option<u64>,
+        /// Figures of the table, comma-separated: `eval` keys (`recon.mean_mm`) or
+        /// `NODE.median_ms` (default: every `eval` key).
+        #[arg(long, value_delimiter = ',')]
+        keys: Vec<String>,
+        /// Output folder.
+        #[arg(long, default_value = "out/ablation")]
+        out: PathBuf,
+    },
     /// Check a graph without running it.
     Validate {
         /// The graph file (TOML).
@@ -809,6 +836,39 @@ fn run(command: Command) -> anyhow::Result<()> {
             })?;
             print!("{text}");
             Ok(())
+        }
+        Command::Ablate {
+            graph: path,
+            vary,
+            seeds,
+            set,
+            frames,
+            keys,
+            out,
+        } => {
+            let vary = vary
+                .iter()
+                .map(|a| misslam::ablate::parse_vary(a))
+                .collect::<Result<Vec<_>, _>>()
+                .map_err(anyhow::Error::msg)?;
+            let plan = misslam::ablate::Plan {
+                graph: path,
+                sets: set,
+                vary,
+                seeds,
+                frames,
+                keys,
+                out,
+            };
+            let report = misslam::ablate::run(&plan, &registry).map_err(anyhow::Error::msg)?;
+            out!("{}", report.table().trim_end());
+            eprintln!("runs and ablation.json: {}", plan.out.display());
+            match report.failures() {
+                0 => Ok(()),
+                n => Err(anyhow::anyhow!(
+                    "{n} run(s) failed (their errors are in ablation.json)"
+                )),
+            }
         }
         Command::Validate { graph: path, set } => {
             let g = graph::load(&path, &registry, &set)?;

@@ -418,3 +418,140 @@ fn features_bench_matches_an_image_to_itself_and_names_a_bad_threshold() {
     assert!(bad.is_none());
     assert!(err.contains("min_fast_threshold"), "{err}");
 }
+
+/// Reads a JSON file.
+fn json(path: &std::path::Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+#[test]
+fn ablate_runs_every_variant_and_seed_and_keeps_every_result() {
+    let dir = common::tmp_dir("ablate");
+    let study = dir.join("study");
+    let out = misslam()
+        .args([
+            "ablate",
+            "graphs/template_dff.toml",
+            "--vary",
+            "fusion.data_term=dff,projective",
+            "--seeds",
+            "7,1",
+            "--frames",
+            "3",
+            "--keys",
+            "recon.mean_mm,fusion.median_ms",
+            "--out",
+        ])
+        .arg(&study)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let table = String::from_utf8_lossy(&out.stdout).to_string();
+    let lines: Vec<&str> = table.lines().collect();
+    assert_eq!(lines.len(), 3, "{table}");
+    assert!(
+        lines[0].starts_with("fusion.data_term  recon.mean_mm"),
+        "{table}"
+    );
+    assert!(
+        lines[1].starts_with("dff") && lines[1].contains(" ± "),
+        "{table}"
+    );
+    let report = json(&study.join("ablation.json"));
+    let rows = report["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 2);
+    let mut means = Vec::new();
+    for row in rows {
+        let runs = row["runs"].as_array().unwrap();
+        assert_eq!(runs.len(), 2);
+        let mut sum = 0.0;
+        for r in runs {
+            assert!(r["error"].is_null(), "{r}");
+            // Each run's own metrics.json stays, and the table's figure is its figure.
+            let m =
+                json(&std::path::PathBuf::from(r["dir"].as_str().unwrap()).join("metrics.json"));
+            let v = r["figures"]["recon.mean_mm"].as_f64().unwrap();
+            assert_eq!(m["eval"]["recon.mean_mm"].as_f64().unwrap(), v);
+            assert_eq!(m["frames"]["processed"], 3);
+            let seed = r["seed"].as_u64().unwrap();
+            assert!(
+                m["overrides"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .any(|o| o.as_str() == Some(&format!("graph.seed={seed}"))),
+                "{m}"
+            );
+            assert!(r["figures"]["fusion.median_ms"].as_f64().unwrap() > 0.0);
+            sum += v;
+        }
+        let mean = row["mean"]["recon.mean_mm"].as_f64().unwrap();
+        assert!((mean - sum / 2.0).abs() < 1e-12, "{mean} vs {}", sum / 2.0);
+        means.push(mean);
+    }
+    // The variants are not the same run twice.
+    assert_ne!(means[0], means[1]);
+
+    // A run that fails is recorded, the others go on, and the command says so.
+    let failing = dir.join("failing");
+    let out = misslam()
+        .args([
+            "ablate",
+            "graphs/template_dff.toml",
+            "--vary",
+            "fusion.field.max_voxels=16000000,1",
+            "--frames",
+            "2",
+            "--keys",
+            "recon.mean_mm",
+            "--out",
+        ])
+        .arg(&failing)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("1 run(s) failed"), "{err}");
+    let report = json(&failing.join("ablation.json"));
+    let rows = report["rows"].as_array().unwrap();
+    assert!(rows[0]["runs"][0]["error"].is_null());
+    assert!(rows[0]["mean"]["recon.mean_mm"].as_f64().unwrap() > 0.0);
+    let e = rows[1]["runs"][0]["error"].as_str().unwrap();
+    assert!(e.contains("max_voxels"), "{e}");
+
+    // A misspelt key is refused before anything runs, naming the variant.
+    let typo = dir.join("typo");
+    let out = misslam()
+        .args([
+            "ablate",
+            "graphs/template_dff.toml",
+            "--vary",
+            "fusion.data_trem=dff,projective",
+            "--out",
+        ])
+        .arg(&typo)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("variant fusion.data_trem=dff") && err.contains("data_trem"),
+        "{err}"
+    );
+    assert!(!typo.join("ablation.json").exists());
+    let out = misslam()
+        .args([
+            "ablate",
+            "graphs/template_dff.toml",
+            "--vary",
+            "fusion.data_term",
+        ])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("expected KEY=VALUE"));
+}
