@@ -268,6 +268,8 @@ pub fn run(plan: &Plan, registry: &crate::framework::Registry) -> Result<Report,
     }
     let mut rows = Vec::new();
     let mut keys = plan.keys.clone();
+    let total = all.len() * seeds.len();
+    let mut done = 0;
     for (index, variant) in all.into_iter().enumerate() {
         let mut runs = Vec::new();
         for &seed in &seeds {
@@ -301,8 +303,24 @@ pub fn run(plan: &Plan, registry: &crate::framework::Registry) -> Result<Report,
                     error: Some(e),
                 },
             };
-            if let Some(e) = &result.error {
-                tracing::warn!(variant = ?variant, seed = ?seed, "run failed: {e}");
+            done += 1;
+            let mut what: Vec<String> = variant.iter().map(|(k, v)| format!("{k}={v}")).collect();
+            if let Some(s) = seed {
+                what.push(format!("seed {s}"));
+            }
+            match &result.error {
+                Some(e) => tracing::warn!("run {done}/{total} ({}) failed: {e}", what.join(" ")),
+                None => tracing::info!(
+                    "run {done}/{total} ({}): {}",
+                    what.join(" "),
+                    result
+                        .figures
+                        .iter()
+                        .take(3)
+                        .map(|(k, v)| format!("{k} {v:.4}"))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ),
             }
             if plan.keys.is_empty() {
                 for k in result.figures.keys() {
