@@ -357,6 +357,47 @@ fn the_decoupled_solve_moves_the_whole_template() {
 }
 
 #[test]
+fn surface_samples_give_a_coarse_template_its_data() {
+    // A coarse pre-operative mesh (the heart's rest surface at 6 mm instead of 2) leaves few data
+    // rows per node. `data_subdivision = 3` adds the points of each triangle's 1/3 grid to the
+    // data term (the output mesh keeps the template's vertices). Measured over 20 frames: whole
+    // template 0.630 mm without the samples, 0.392 with (546 vertices, 4,636 data points); tracked
+    // vertices where seen 0.424 and 0.307 mm.
+    let mut r = Vec::new();
+    for n in ["1", "3"] {
+        let (e, _) = run(
+            "graphs/template_dff.toml",
+            &[
+                "graph.frames.count=20",
+                "src.mesh_step_mm=6",
+                &format!("fusion.data_subdivision={n}"),
+            ],
+            &format!("template_subdivision_{n}"),
+        );
+        eprintln!(
+            "6 mm template, data_subdivision {n}: whole template {:.4} mm, tracked where seen {:.4} mm, {} vertices, {} data points",
+            e["recon.mean_mm"], e["recon.vertex_seen_mm"], e["template.vertices"], e["template.data_points"]
+        );
+        r.push(e);
+    }
+    assert_eq!(r[0]["template.vertices"], r[1]["template.vertices"]);
+    assert_eq!(r[0]["template.data_points"], r[0]["template.vertices"]);
+    assert!(r[1]["template.data_points"] > 4.0 * r[1]["template.vertices"]);
+    assert!(
+        r[1]["recon.mean_mm"] < 0.8 * r[0]["recon.mean_mm"],
+        "{} with samples, {} without",
+        r[1]["recon.mean_mm"],
+        r[0]["recon.mean_mm"]
+    );
+    assert!(
+        r[1]["recon.vertex_seen_mm"] < r[0]["recon.vertex_seen_mm"],
+        "{} with samples, {} without",
+        r[1]["recon.vertex_seen_mm"],
+        r[0]["recon.vertex_seen_mm"]
+    );
+}
+
+#[test]
 fn the_first_solve_is_held_where_the_template_was_placed() {
     // On its first frame the template is the tissue exactly (the phantom's frame 0 is its rest
     // shape). Fitted to noisy depth with no keypoint anchor yet, the first solve slid it along

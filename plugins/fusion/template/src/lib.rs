@@ -184,6 +184,12 @@ pub struct Params {
     /// anchors made after it kept the slide. Over 4 seeds, 40 frames: whole-template surface
     /// heart 0.329 to 0.313 mm, kidney 0.209 to 0.194, liver 0.255 to 0.244.
     pub first_frame_motion: f64,
+    /// Surface samples for the data term: each template triangle adds the points of an n x n
+    /// barycentric grid that are not its corners (edges shared once), bound to the graph like
+    /// the vertices; the output mesh stays the template's vertices. 1: the vertices only. A
+    /// coarse pre-operative mesh (vertices several mm apart) otherwise leaves few data rows per
+    /// node.
+    pub data_subdivision: u32,
 }
 
 impl Default for Params {
@@ -207,6 +213,7 @@ impl Default for Params {
             color: true,
             correspondences: CorrParams::default(),
             first_frame_motion: 3.0,
+            data_subdivision: 1,
         }
     }
 }
@@ -279,6 +286,12 @@ impl Params {
                 ),
             ));
         }
+        if !(1..=8).contains(&self.data_subdivision) {
+            return Err(BuildError::param(
+                "data_subdivision",
+                format!("must be 1 to 8, got {}", self.data_subdivision),
+            ));
+        }
         positive(self.normal_max_step_mm as f64, "normal_max_step_mm")?;
         positive(self.visible_distance_mm, "visible_distance_mm")?;
         if !(self.visible_angle_deg > 0.0 && self.visible_angle_deg <= 180.0) {
@@ -303,6 +316,9 @@ impl Params {
 
 /// The template bound to its graph, in the canonical (aligned, undeformed) world frame.
 struct Model {
+    /// The template's vertices: the first `nv` points (the rest are surface samples for the
+    /// data term, `data_subdivision`).
+    nv: usize,
     points: Vec<Vector3<f64>>,
     normals: Vec<Vector3<f64>>,
     bindings: Vec<Binding>,
@@ -331,6 +347,45 @@ pub struct TemplateNode {
     corr: corr::CorrTracker,
     /// The template has been solved once (`first_frame_motion` no longer applies).
     solved: bool,
+}
+
+/// The points of each triangle's barycentric grid of step 1/n other than its corners, the points
+/// on an edge once for the triangles that share it, with barycentric normals (normalised): the
+/// data term's samples of a surface whose vertices are far apart. n = 1 gives none.
+pub fn surface_samples(
+    points: &[Vector3<f64>],
+    normals: &[Vector3<f64>],
+    triangles: &[[u32; 3]],
+    n: u32,
+) -> (Vec<Vector3<f64>>, Vec<Vector3<f64>>) {
+    let mut edges = std::collections::HashSet::new();
+    let (mut sp, mut sn) = (Vec::new(), Vec::new());
+    let nf = f64::from(n);
+    let mut push = |w: [f64; 3], c: [usize; 3]| {
+        sp.push(points[c[0]] * w[0] + points[c[1]] * w[1] + points[c[2]] * w[2]);
+        let m = normals[c[0]] * w[0] + normals[c[1]] * w[1] + normals[c[2]] * w[2];
+        sn.push(m.try_normalize(1e-12).unwrap_or(normals[c[0]]));
+    };
+    for t in triangles {
+        let c = t.map(|i| i as usize);
+        // Interior points.
+        for i in 1..n {
+            for j in 1..n - i {
+                let k = n - i - j;
+                push([f64::from(i) / nf, f64::from(j) / nf, f64::from(k) / nf], c);
+            }
+        }
+        // Edge points, once per edge.
+        for (a, b) in [(c[0], c[1]), (c[1], c[2]), (c[2], c[0])] {
+            if edges.insert((a.min(b), a.max(b))) {
+                for m in 1..n {
+                    let s = f64::from(m) / nf;
+                    push([1.0 - s, s, 0.0], [a, b, a]);
+                }
+            }
+        }
+    }
+    (sp, sn)
 }
 
 /// Reads a template file into a mesh with normals.
@@ -470,7 +525,17 @@ impl TemplateNode {
             .clone()
             .filter(|c| c.len() == nv)
             .unwrap_or_else(|| vec![[190, 190, 190]; nv]);
+        let n = self.p.data_subdivision;
+        let bindings = if n > 1 {
+            let (sp, sn) = surface_samples(&points, &normals, &template.triangles, n);
+            points.extend(sp);
+            normals.extend(sn);
+            graph.bind_all(&points)
+        } else {
+            bindings
+        };
         Ok(Model {
+            nv,
             color_quality: vec![0.0; nv],
             points,
             normals,
@@ -709,6 +774,9 @@ impl TemplateNode {
             let cfw = pose.inverse();
             for &i in &visible {
                 let i = i as usize;
+                if i >= model.nv {
+                    continue;
+                }
                 let p = cfw * Point3::from(live[i]);
                 let u = (k.fx * p.x / p.z + k.cx).round();
                 let v = (k.fy * p.y / p.z + k.cy).round();
@@ -732,8 +800,8 @@ impl TemplateNode {
         outputs.put(
             "mesh",
             Mesh {
-                vertices: live.iter().map(arr3).collect(),
-                normals: Some(live_n.iter().map(arr3).collect()),
+                vertices: live[..model.nv].iter().map(arr3).collect(),
+                normals: Some(live_n[..model.nv].iter().map(arr3).collect()),
                 colors: Some(model.colors.clone()),
                 triangles: model.triangles.clone(),
             },
@@ -796,7 +864,8 @@ impl Node for TemplateNode {
 
     fn finish(&mut self, ctx: &mut NodeContext) -> NodeResult<()> {
         if let Some(m) = &self.model {
-            ctx.report_eval("template.vertices", m.points.len() as f64);
+            ctx.report_eval("template.vertices", m.nv as f64);
+            ctx.report_eval("template.data_points", m.points.len() as f64);
             ctx.report_eval("template.nodes", m.graph.len() as f64);
         }
         if let Some((before, after)) = self.align_rms {
@@ -900,4 +969,40 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
         ],
         build,
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn surface_samples_cover_each_triangle_and_each_shared_edge_once() {
+        // Two triangles of the unit square sharing the diagonal (0, 2).
+        let p = [
+            Vector3::new(0.0, 0.0, 0.0),
+            Vector3::new(3.0, 0.0, 0.0),
+            Vector3::new(3.0, 3.0, 0.0),
+            Vector3::new(0.0, 3.0, 0.0),
+        ];
+        let n = [Vector3::z(), Vector3::z(), Vector3::x(), Vector3::z()];
+        let tris = [[0, 1, 2], [0, 2, 3]];
+        assert!(surface_samples(&p, &n, &tris, 1).0.is_empty());
+        // n = 2: the midpoints of the 5 distinct edges.
+        let (s, _) = surface_samples(&p, &n, &tris, 2);
+        assert_eq!(s.len(), 5);
+        assert!(s.contains(&Vector3::new(1.5, 1.5, 0.0)));
+        // n = 3: per triangle its centroid, per edge two points: 2 + 5 * 2.
+        let (s, sn) = surface_samples(&p, &n, &tris, 3);
+        assert_eq!(s.len(), 12);
+        assert!(s
+            .iter()
+            .any(|q| (q - Vector3::new(2.0, 1.0, 0.0)).norm() < 1e-12));
+        for m in &sn {
+            assert!((m.norm() - 1.0).abs() < 1e-12);
+        }
+        // Every sample lies on the square.
+        for q in &s {
+            assert!(q.z == 0.0 && (0.0..=3.0).contains(&q.x) && (0.0..=3.0).contains(&q.y));
+        }
+    }
 }
