@@ -952,7 +952,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
             PortSpec::new(
                 "visible",
                 PortType::PointCloud,
-                "the deformed vertices that fed the data term",
+                "the deformed vertices (and surface samples, with data_subdivision) that fed the data term",
             ),
             PortSpec::optional(
                 "field",
