@@ -27,6 +27,9 @@ pub struct Plan {
     pub keys: Vec<String>,
     /// Where the runs and `ablation.json` go.
     pub out: PathBuf,
+    /// Runs at a time (each on its own thread; a run's nodes share the process's thread pool).
+    /// The figures do not depend on it.
+    pub jobs: usize,
 }
 
 /// One run of a variant.
@@ -266,74 +269,111 @@ pub fn run(plan: &Plan, registry: &crate::framework::Registry) -> Result<Report,
             format!("variant {}: {e}", v.join(" "))
         })?;
     }
-    let mut rows = Vec::new();
-    let mut keys = plan.keys.clone();
-    let total = all.len() * seeds.len();
-    let mut done = 0;
-    for (index, variant) in all.into_iter().enumerate() {
-        let mut runs = Vec::new();
-        for &seed in &seeds {
-            let sets = sets_of(&variant, seed);
-            let dir = plan
-                .out
-                .join(format!("{index:03}_{}", label(&variant, seed)));
-            let outcome = graph::load(&plan.graph, registry, &sets)
+    // Every run, in a fixed order; `jobs` threads take them one at a time.
+    let runs_todo: Vec<(usize, Option<u64>)> = (0..all.len())
+        .flat_map(|v| seeds.iter().map(move |&s| (v, s)))
+        .collect();
+    let total = runs_todo.len();
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let finished = std::sync::atomic::AtomicUsize::new(0);
+    let results: std::sync::Mutex<Vec<Option<RunResult>>> =
+        std::sync::Mutex::new(vec![None; total]);
+    let work = || loop {
+        let job = next.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        let Some(&(v, seed)) = runs_todo.get(job) else {
+            break;
+        };
+        let variant = &all[v];
+        let dir = plan.out.join(format!("{v:03}_{}", label(variant, seed)));
+        let outcome = graph::load(&plan.graph, registry, &sets_of(variant, seed))
+            .map_err(|e| e.to_string())
+            .and_then(|g| Runtime::build(g).map_err(|e| e.to_string()))
+            .and_then(|rt| {
+                rt.run(RunOptions {
+                    out_dir: Some(dir.clone()),
+                    frames: plan.frames,
+                    recorder: None,
+                    progress: None,
+                })
                 .map_err(|e| e.to_string())
-                .and_then(|g| Runtime::build(g).map_err(|e| e.to_string()))
-                .and_then(|rt| {
-                    rt.run(RunOptions {
-                        out_dir: Some(dir.clone()),
-                        frames: plan.frames,
-                        recorder: None,
-                        progress: None,
-                    })
-                    .map_err(|e| e.to_string())
-                });
-            let result = match outcome {
-                Ok(report) => RunResult {
-                    seed,
-                    dir,
-                    figures: figures(&report.metrics, &plan.keys),
-                    error: report.error.map(|e| e.to_string()),
-                },
-                Err(e) => RunResult {
-                    seed,
-                    dir,
-                    figures: BTreeMap::new(),
-                    error: Some(e),
-                },
-            };
-            done += 1;
-            let mut what: Vec<String> = variant.iter().map(|(k, v)| format!("{k}={v}")).collect();
-            if let Some(s) = seed {
-                what.push(format!("seed {s}"));
-            }
-            match &result.error {
-                Some(e) => tracing::warn!("run {done}/{total} ({}) failed: {e}", what.join(" ")),
-                None => tracing::info!(
-                    "run {done}/{total} ({}): {}",
-                    what.join(" "),
-                    result
-                        .figures
-                        .iter()
-                        .take(3)
-                        .map(|(k, v)| format!("{k} {v:.4}"))
-                        .collect::<Vec<_>>()
-                        .join(", ")
-                ),
-            }
+            });
+        let result = match outcome {
+            Ok(report) => RunResult {
+                seed,
+                dir,
+                figures: figures(&report.metrics, &plan.keys),
+                error: report.error.map(|e| e.to_string()),
+            },
+            Err(e) => RunResult {
+                seed,
+                dir,
+                figures: BTreeMap::new(),
+                error: Some(e),
+            },
+        };
+        let done = finished.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1;
+        let mut what: Vec<String> = variant.iter().map(|(k, v)| format!("{k}={v}")).collect();
+        if let Some(s) = seed {
+            what.push(format!("seed {s}"));
+        }
+        match &result.error {
+            Some(e) => tracing::warn!("run {done}/{total} ({}) failed: {e}", what.join(" ")),
+            None => tracing::info!(
+                "run {done}/{total} ({}): {}",
+                what.join(" "),
+                result
+                    .figures
+                    .iter()
+                    .take(3)
+                    .map(|(k, v)| format!("{k} {v:.4}"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+        }
+        if let Ok(mut r) = results.lock() {
+            r[job] = Some(result);
+        }
+    };
+    std::thread::scope(|scope| {
+        for _ in 1..plan.jobs.clamp(1, total.max(1)) {
+            scope.spawn(work);
+        }
+        work();
+    });
+    let mut results = results
+        .into_inner()
+        .map_err(|_| "a run's thread panicked".to_string())?
+        .into_iter();
+    // The figures of the table: the plan's, or every one some run reported.
+    let mut keys = plan.keys.clone();
+    let mut rows = Vec::new();
+    for variant in all {
+        let mut runs = Vec::new();
+        for _ in &seeds {
+            let r = results
+                .next()
+                .flatten()
+                .ok_or_else(|| "a run left no result".to_string())?;
             if plan.keys.is_empty() {
-                for k in result.figures.keys() {
+                for k in r.figures.keys() {
                     if !keys.contains(k) {
                         keys.push(k.clone());
                     }
                 }
             }
-            runs.push(result);
+            runs.push(r);
         }
-        let (mut mean, mut sd) = (BTreeMap::new(), BTreeMap::new());
+        rows.push(Row {
+            variant,
+            runs,
+            mean: BTreeMap::new(),
+            sd: BTreeMap::new(),
+        });
+    }
+    for row in &mut rows {
         for k in &keys {
-            let v: Vec<f64> = runs
+            let v: Vec<f64> = row
+                .runs
                 .iter()
                 .filter_map(|r| r.figures.get(k))
                 .copied()
@@ -348,15 +388,9 @@ pub fn run(plan: &Plan, registry: &crate::framework::Registry) -> Result<Report,
             } else {
                 0.0
             };
-            mean.insert(k.clone(), m);
-            sd.insert(k.clone(), var.sqrt());
+            row.mean.insert(k.clone(), m);
+            row.sd.insert(k.clone(), var.sqrt());
         }
-        rows.push(Row {
-            variant,
-            runs,
-            mean,
-            sd,
-        });
     }
     keys.sort_by_key(|k| plan.keys.iter().position(|p| p == k).unwrap_or(usize::MAX));
     let report = Report {

@@ -86,6 +86,9 @@ enum Command {
         /// Output folder.
         #[arg(long, default_value = "out/ablation")]
         out: PathBuf,
+        /// Runs at a time (the figures do not depend on it).
+        #[arg(long, default_value_t = 1)]
+        jobs: usize,
     },
     /// Check a graph without running it.
     Validate {
@@ -845,6 +848,7 @@ fn run(command: Command) -> anyhow::Result<()> {
             frames,
             keys,
             out,
+            jobs,
         } => {
             let vary = vary
                 .iter()
@@ -859,6 +863,7 @@ fn run(command: Command) -> anyhow::Result<()> {
                 frames,
                 keys,
                 out,
+                jobs,
             };
             let report = misslam::ablate::run(&plan, &registry).map_err(anyhow::Error::msg)?;
             out!("{}", report.table().trim_end());

@@ -496,6 +496,46 @@ fn ablate_runs_every_variant_and_seed_and_keeps_every_result() {
     // The variants are not the same run twice.
     assert_ne!(means[0], means[1]);
 
+    // Two runs at a time: the same figures, in the same rows.
+    let parallel = dir.join("parallel");
+    let out = misslam()
+        .args([
+            "ablate",
+            "graphs/template_dff.toml",
+            "--vary",
+            "fusion.data_term=dff,projective",
+            "--seeds",
+            "7,1",
+            "--frames",
+            "3",
+            "--keys",
+            "recon.mean_mm",
+            "--jobs",
+            "2",
+            "--out",
+        ])
+        .arg(&parallel)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let p = json(&parallel.join("ablation.json"));
+    for (row, prow) in rows.iter().zip(p["rows"].as_array().unwrap()) {
+        assert_eq!(row["variant"], prow["variant"]);
+        for (r, pr) in row["runs"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .zip(prow["runs"].as_array().unwrap())
+        {
+            assert_eq!(r["seed"], pr["seed"]);
+            assert_eq!(r["figures"]["recon.mean_mm"], pr["figures"]["recon.mean_mm"]);
+        }
+    }
+
     // A run that fails is recorded, the others go on, and the command says so.
     let failing = dir.join("failing");
     let out = misslam()
