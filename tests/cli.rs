@@ -424,27 +424,32 @@ fn json(path: &std::path::Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
 }
 
+/// `misslam ablate graphs/template_dff.toml ARGS... --out OUT`.
+fn ablate(args: &[&str], out: &std::path::Path) -> std::process::Output {
+    misslam()
+        .args(["ablate", "graphs/template_dff.toml"])
+        .args(args)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .unwrap()
+}
+
 #[test]
 fn ablate_runs_every_variant_and_seed_and_keeps_every_result() {
     let dir = common::tmp_dir("ablate");
     let study = dir.join("study");
-    let out = misslam()
-        .args([
-            "ablate",
-            "graphs/template_dff.toml",
-            "--vary",
-            "fusion.data_term=dff,projective",
-            "--seeds",
-            "7,1",
-            "--frames",
-            "3",
-            "--keys",
-            "recon.mean_mm,fusion.median_ms",
-            "--out",
-        ])
-        .arg(&study)
-        .output()
-        .unwrap();
+    let study_args = [
+        "--vary",
+        "fusion.data_term=dff,projective",
+        "--seeds",
+        "7,1",
+        "--frames",
+        "3",
+        "--keys",
+        "recon.mean_mm,fusion.median_ms",
+    ];
+    let out = ablate(&study_args, &study);
     assert!(
         out.status.success(),
         "{}",
@@ -498,25 +503,7 @@ fn ablate_runs_every_variant_and_seed_and_keeps_every_result() {
 
     // Two runs at a time: the same figures, in the same rows.
     let parallel = dir.join("parallel");
-    let out = misslam()
-        .args([
-            "ablate",
-            "graphs/template_dff.toml",
-            "--vary",
-            "fusion.data_term=dff,projective",
-            "--seeds",
-            "7,1",
-            "--frames",
-            "3",
-            "--keys",
-            "recon.mean_mm",
-            "--jobs",
-            "2",
-            "--out",
-        ])
-        .arg(&parallel)
-        .output()
-        .unwrap();
+    let out = ablate(&[&study_args[..], &["--jobs", "2"]].concat(), &parallel);
     assert!(
         out.status.success(),
         "{}",
@@ -532,27 +519,26 @@ fn ablate_runs_every_variant_and_seed_and_keeps_every_result() {
             .zip(prow["runs"].as_array().unwrap())
         {
             assert_eq!(r["seed"], pr["seed"]);
-            assert_eq!(r["figures"]["recon.mean_mm"], pr["figures"]["recon.mean_mm"]);
+            assert_eq!(
+                r["figures"]["recon.mean_mm"],
+                pr["figures"]["recon.mean_mm"]
+            );
         }
     }
 
     // A run that fails is recorded, the others go on, and the command says so.
     let failing = dir.join("failing");
-    let out = misslam()
-        .args([
-            "ablate",
-            "graphs/template_dff.toml",
+    let out = ablate(
+        &[
             "--vary",
             "fusion.field.max_voxels=16000000,1",
             "--frames",
             "2",
             "--keys",
             "recon.mean_mm",
-            "--out",
-        ])
-        .arg(&failing)
-        .output()
-        .unwrap();
+        ],
+        &failing,
+    );
     assert_eq!(out.status.code(), Some(1));
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("1 run(s) failed"), "{err}");
@@ -565,17 +551,7 @@ fn ablate_runs_every_variant_and_seed_and_keeps_every_result() {
 
     // A misspelt key is refused before anything runs, naming the variant.
     let typo = dir.join("typo");
-    let out = misslam()
-        .args([
-            "ablate",
-            "graphs/template_dff.toml",
-            "--vary",
-            "fusion.data_trem=dff,projective",
-            "--out",
-        ])
-        .arg(&typo)
-        .output()
-        .unwrap();
+    let out = ablate(&["--vary", "fusion.data_trem=dff,projective"], &typo);
     assert_eq!(out.status.code(), Some(1));
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(

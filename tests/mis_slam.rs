@@ -158,19 +158,8 @@ fn hamlyn_run(name: &str) {
         traj.lines().next().is_some_and(|l| l.starts_with("0 ")),
         "{traj}"
     );
-    let ply = std::fs::read(out.join("export/model/final.ply")).expect("final.ply written");
-    let start = ply
-        .windows(11)
-        .position(|w| w == b"end_header\n")
-        .expect("a PLY header")
-        + 11;
-    // x, y, z, nx, ny, nz as f32 then r, g, b: 27 bytes per vertex; every coordinate finite.
-    for v in ply[start..].chunks_exact(27) {
-        for k in 0..6 {
-            let f = f32::from_le_bytes(v[4 * k..4 * k + 4].try_into().unwrap());
-            assert!(f.is_finite());
-        }
-    }
+    let nv = common::finite_ply_vertices(&out.join("export/model/final.ply"));
+    assert_eq!(nv as f64, e["fusion.surfels"]);
 }
 
 #[test]

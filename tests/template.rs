@@ -204,27 +204,8 @@ fn template_fusion_runs_over_the_real_hamlyn_frames_without_failing() {
     assert_eq!(traj.lines().count(), 17);
     let lost = traj.lines().filter(|l| l.starts_with("# frame")).count();
     assert!((1..17).contains(&lost), "{traj}");
-    let ply = std::fs::read(out.join("export/mesh/final.ply")).expect("final.ply written");
-    let start = ply
-        .windows(11)
-        .position(|w| w == b"end_header\n")
-        .expect("a PLY header")
-        + 11;
-    let header = String::from_utf8_lossy(&ply[..start]).to_string();
-    let nv: usize = header
-        .split("element vertex ")
-        .nth(1)
-        .and_then(|r| r.split_whitespace().next())
-        .and_then(|n| n.parse().ok())
-        .expect("a vertex count");
+    let nv = common::finite_ply_vertices(&out.join("export/mesh/final.ply"));
     assert_eq!(nv as f64, e["template.vertices"]);
-    // x, y, z, nx, ny, nz as f32 then r, g, b: 27 bytes per vertex; every coordinate finite.
-    for v in ply[start..start + 27 * nv].chunks_exact(27) {
-        for k in 0..6 {
-            let f = f32::from_le_bytes(v[4 * k..4 * k + 4].try_into().unwrap());
-            assert!(f.is_finite());
-        }
-    }
 }
 
 #[test]

@@ -131,3 +131,28 @@ pub fn rerun_verified(rrd: &Path) -> Option<impl Fn(&str) -> String + '_> {
         String::from_utf8_lossy(&out.stdout).into_owned()
     })
 }
+
+/// Reads a binary PLY as `sink.files` writes it (x, y, z, nx, ny, nz as f32, then r, g, b),
+/// checks that every coordinate is finite and returns the vertex count of its header.
+pub fn finite_ply_vertices(path: &Path) -> usize {
+    let ply = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let start = ply
+        .windows(11)
+        .position(|w| w == b"end_header\n")
+        .expect("a PLY header")
+        + 11;
+    let header = String::from_utf8_lossy(&ply[..start]).to_string();
+    let nv: usize = header
+        .split("element vertex ")
+        .nth(1)
+        .and_then(|r| r.split_whitespace().next())
+        .and_then(|n| n.parse().ok())
+        .expect("a vertex count");
+    for v in ply[start..start + 27 * nv].chunks_exact(27) {
+        for k in 0..6 {
+            let f = f32::from_le_bytes([v[4 * k], v[4 * k + 1], v[4 * k + 2], v[4 * k + 3]]);
+            assert!(f.is_finite(), "{}: a non-finite coordinate", path.display());
+        }
+    }
+    nv
+}

@@ -19,6 +19,23 @@ struct BumpySheet {
     field: DistanceField,
 }
 
+impl BumpySheet {
+    /// The sheet's points against the field, nothing else.
+    fn problem(&self) -> Problem<'_> {
+        Problem {
+            model: ModelPoints {
+                points: &self.points,
+                normals: &self.normals,
+                bindings: &self.bindings,
+            },
+            scan: None,
+            field: Some(&self.field),
+            correspondences: &[],
+            pose_prior: Isometry3::identity(),
+        }
+    }
+}
+
 fn bumpy_sheet(noise_mm: f64) -> BumpySheet {
     // A flat sheet: along a curved one the normal rows also see part of a sideways motion.
     let (mut points, tris) = sheet(41, 31, 1.0, 60.0);
@@ -132,17 +149,7 @@ fn a_converged_solve_stops_instead_of_damping_ever_shorter_steps() {
     // the cost's variation). A rejected step that raises it by less than the tolerance ends the
     // solve: damping more only shortens the next step, and each try costs a factorisation.
     let s = bumpy_sheet(0.1);
-    let problem = Problem {
-        model: ModelPoints {
-            points: &s.points,
-            normals: &s.normals,
-            bindings: &s.bindings,
-        },
-        scan: None,
-        field: Some(&s.field),
-        correspondences: &[],
-        pose_prior: Isometry3::identity(),
-    };
+    let problem = s.problem();
     let params = SolverParams {
         max_iterations: 30,
         ..Default::default()
@@ -203,17 +210,7 @@ fn the_motion_prior_holds_the_sheet_where_the_field_cannot_see_it_slide() {
     // where the solve found it: the slide shrinks while the 0.5 mm offset along the normal, which
     // the data see, is still fitted. With the decoupled solver E_m acts in level I.
     let s = bumpy_sheet(0.1);
-    let problem = Problem {
-        model: ModelPoints {
-            points: &s.points,
-            normals: &s.normals,
-            bindings: &s.bindings,
-        },
-        scan: None,
-        field: Some(&s.field),
-        correspondences: &[],
-        pose_prior: Isometry3::identity(),
-    };
+    let problem = s.problem();
     let run = |motion: f64, decoupled: bool| {
         let mut params = SolverParams {
             max_iterations: 20,
