@@ -1,0 +1,281 @@
+//! The parameters of `fusion.template`, with their checks.
+
+use crate::scan_mesh::ScanTemplateParams;
+use misslam_deformation_ed::decoupled::DecoupledParams;
+use misslam_deformation_ed::engine::SolverKind;
+use misslam_deformation_ed::graph::GraphParams;
+use misslam_deformation_ed::problem::SolverParams;
+use misslam_framework::nalgebra::{Isometry3, Translation3, UnitQuaternion};
+use misslam_framework::{BuildError, Device};
+use misslam_fusion_surfel::corr::CorrParams;
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
+
+/// The data term that pulls the template onto the scan.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum DataTerm {
+    /// Distance field function: trilinear lookup of a truncated signed-distance volume built
+    /// from the scan; no correspondence search (the thesis's method).
+    #[default]
+    Dff,
+    /// Back-projection: each vertex is projected into the depth map and associated with the
+    /// scan point at that pixel, point-to-plane, re-associated every iteration (the baseline).
+    Projective,
+}
+
+/// How the template is placed on the first frame.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum AlignMode {
+    /// The given placement only (`translation_mm`, `rotation_deg`).
+    #[default]
+    Given,
+    /// The given placement refined by rigid ICP against the first scan's distance field.
+    Icp,
+}
+
+/// The one-time rigid alignment of the template.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct AlignParams {
+    /// "given" or "icp".
+    pub mode: AlignMode,
+    /// world_from_template translation, mm (applied after the rotation).
+    pub translation_mm: [f64; 3],
+    /// world_from_template rotation as x, y, z Euler angles (roll, pitch, yaw), degrees.
+    pub rotation_deg: [f64; 3],
+    /// ICP: truncation of the alignment's distance field, mm; the given placement must bring
+    /// the template within about this distance of the scan.
+    pub truncation_mm: f64,
+    /// ICP: voxel side of the alignment's distance field, mm.
+    pub voxel_mm: f64,
+    /// ICP: Gauss-Newton iterations at most.
+    pub iterations: usize,
+    /// ICP: Huber scale, mm (template parts the scan does not see count less beyond it).
+    pub huber_mm: f64,
+}
+
+impl Default for AlignParams {
+    fn default() -> Self {
+        AlignParams {
+            mode: AlignMode::Given,
+            translation_mm: [0.0; 3],
+            rotation_deg: [0.0; 3],
+            truncation_mm: 10.0,
+            voxel_mm: 1.0,
+            iterations: 30,
+            huber_mm: 1.0,
+        }
+    }
+}
+
+/// The per-frame distance field function.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct FieldParams {
+    /// Voxel side, mm.
+    pub voxel_mm: f64,
+    /// Truncation, mm: voxels farther than this from every scan point are unknown, and a vertex
+    /// there has no data term this frame.
+    pub truncation_mm: f64,
+    /// Refuse a scan whose field would need more voxels than this (a depth outlier far away
+    /// stretches the box): the frame fails with a message instead of exhausting memory.
+    pub max_voxels: usize,
+    /// Half-size, in pixels, of the block of scan pixels averaged into each voxel (0: the
+    /// nearest pixel only); about half the voxel's footprint (voxel * fx / depth / 2) smooths the
+    /// scan's noise without blurring its shape.
+    pub window_px: u32,
+    /// Where the field is built: "cpu", "gpu" (an error without an adapter) or "auto".
+    pub device: Device,
+}
+
+impl Default for FieldParams {
+    fn default() -> Self {
+        FieldParams {
+            voxel_mm: 1.0,
+            truncation_mm: 5.0,
+            max_voxels: 16_000_000,
+            window_px: 0,
+            device: Device::Cpu,
+        }
+    }
+}
+
+/// Parameters of `fusion.template`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// The pre-operative mesh (OBJ or PLY in mm, glTF in metres), relative to the working
+    /// directory; without it the `template` input is read on the first frame.
+    pub template_path: Option<PathBuf>,
+    /// Without a pre-operative mesh: the first frame's scan, triangulated on a pixel grid, is
+    /// the template (e.g. `template_from_scan = { stride_px = 4, max_edge_mm = 3.0 }`); the
+    /// given pose places it (it is already on the scan), and the later frames deform it.
+    pub template_from_scan: Option<ScanTemplateParams>,
+    /// "dff" (distance field) or "projective" (back-projection).
+    pub data_term: DataTerm,
+    /// The distance field of each frame (with `data_term = "dff"`).
+    pub field: FieldParams,
+    /// The one-time rigid alignment.
+    pub align: AlignParams,
+    /// Deformation graph: spacing (mm), neighbours, sampling.
+    pub graph: GraphParams,
+    /// Energy weights and solver options (`weights.field` weighs the DFF term, `weights.data`
+    /// the projective one).
+    pub solver: SolverParams,
+    /// "batch" or "decoupled".
+    pub solver_kind: SolverKind,
+    /// The decoupled split (with `solver_kind = "decoupled"`). Level II solves every unseen node
+    /// by default here (`level2_rings = 0`): a template is one organ of bounded size, and its
+    /// unseen side moves with it (on the phantom heart, 20 frames: 1.58 mm over the whole
+    /// template with 3 rings, where the far side stayed behind; 0.26 mm with all).
+    pub decoupled: DecoupledParams,
+    /// Depth step (mm) to a neighbour above which a pixel gets no normal (occlusion edge).
+    pub normal_max_step_mm: f32,
+    /// epsilon_dv: a vertex is visible when the scan point it projects to is this close, mm.
+    pub visible_distance_mm: f64,
+    /// epsilon_nv: and its normal within this angle of the scan's, degrees.
+    pub visible_angle_deg: f64,
+    /// Colour the template from the left image (when the `stereo` input is connected).
+    pub color: bool,
+    /// Sparse correspondences (E_corr) from the `features` input: keypoints anchored to the
+    /// deformed template at the end of a frame and matched on the next (as in `fusion.surfel`).
+    pub correspondences: CorrParams,
+    /// w_m of the motion prior E_m on the template's first solve (mm^-2; the larger of this and
+    /// `solver.weights.motion` applies there; 0: off). The placed template is the model the
+    /// surgeon trusts, and on the first frame no keypoint anchor holds it yet: fitted to noisy
+    /// depth alone, the solve slid it along the surface, which the depth cannot see, and the
+    /// anchors made after it kept the slide. Over 4 seeds, 40 frames: whole-template surface
+    /// heart 0.329 to 0.313 mm, kidney 0.209 to 0.194, liver 0.255 to 0.244.
+    pub first_frame_motion: f64,
+    /// Surface samples for the data term: each template triangle adds the points of an n x n
+    /// barycentric grid that are not its corners (edges shared once), bound to the graph like
+    /// the vertices; the output mesh stays the template's vertices. 1: the vertices only. A
+    /// coarse pre-operative mesh (vertices several mm apart) otherwise leaves few data rows per
+    /// node.
+    pub data_subdivision: u32,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params {
+            template_path: None,
+            template_from_scan: None,
+            data_term: DataTerm::Dff,
+            field: FieldParams::default(),
+            align: AlignParams::default(),
+            graph: GraphParams::default(),
+            solver: SolverParams::default(),
+            solver_kind: SolverKind::Decoupled,
+            decoupled: DecoupledParams {
+                level2_rings: 0,
+                ..Default::default()
+            },
+            normal_max_step_mm: 3.0,
+            visible_distance_mm: 5.0,
+            visible_angle_deg: 60.0,
+            color: true,
+            correspondences: CorrParams::default(),
+            first_frame_motion: 3.0,
+            data_subdivision: 1,
+        }
+    }
+}
+
+fn positive(v: f64, field: &str) -> Result<(), BuildError> {
+    if v.is_finite() && v > 0.0 {
+        Ok(())
+    } else {
+        Err(BuildError::param(field, format!("must be > 0, got {v}")))
+    }
+}
+
+impl Params {
+    pub(crate) fn check(&self) -> Result<(), BuildError> {
+        self.graph
+            .validate()
+            .map_err(|m| BuildError::param("graph", m))?;
+        self.solver
+            .validate()
+            .map_err(|m| BuildError::param("solver", m))?;
+        if let Some(t) = &self.template_from_scan {
+            t.validate()
+                .map_err(|m| BuildError::param("template_from_scan", m))?;
+            if self.template_path.is_some() {
+                return Err(BuildError::param(
+                    "template_from_scan",
+                    "set either template_path or template_from_scan, not both",
+                ));
+            }
+        }
+        positive(self.field.voxel_mm, "field.voxel_mm")?;
+        positive(self.field.truncation_mm, "field.truncation_mm")?;
+        if self.field.max_voxels == 0 {
+            return Err(BuildError::param("field.max_voxels", "must be at least 1"));
+        }
+        positive(self.align.truncation_mm, "align.truncation_mm")?;
+        self.correspondences
+            .validate()
+            .map_err(|m| BuildError::param("correspondences", m))?;
+        positive(self.align.voxel_mm, "align.voxel_mm")?;
+        positive(self.align.huber_mm, "align.huber_mm")?;
+        if self.align.iterations == 0 && self.align.mode == AlignMode::Icp {
+            return Err(BuildError::param(
+                "align.iterations",
+                "must be at least 1 with mode = \"icp\"",
+            ));
+        }
+        for (k, v) in self
+            .align
+            .translation_mm
+            .iter()
+            .chain(&self.align.rotation_deg)
+            .enumerate()
+        {
+            if !v.is_finite() {
+                let name = if k < 3 {
+                    "align.translation_mm"
+                } else {
+                    "align.rotation_deg"
+                };
+                return Err(BuildError::param(name, format!("must be finite, got {v}")));
+            }
+        }
+        if !(self.first_frame_motion.is_finite() && self.first_frame_motion >= 0.0) {
+            return Err(BuildError::param(
+                "first_frame_motion",
+                format!(
+                    "must be a finite number >= 0, got {}",
+                    self.first_frame_motion
+                ),
+            ));
+        }
+        if !(1..=8).contains(&self.data_subdivision) {
+            return Err(BuildError::param(
+                "data_subdivision",
+                format!("must be 1 to 8, got {}", self.data_subdivision),
+            ));
+        }
+        positive(self.normal_max_step_mm as f64, "normal_max_step_mm")?;
+        positive(self.visible_distance_mm, "visible_distance_mm")?;
+        if !(self.visible_angle_deg > 0.0 && self.visible_angle_deg <= 180.0) {
+            return Err(BuildError::param(
+                "visible_angle_deg",
+                "must be in (0, 180]",
+            ));
+        }
+        Ok(())
+    }
+
+    /// The given placement, world_from_template.
+    pub fn given_pose(&self) -> Isometry3<f64> {
+        let [rx, ry, rz] = self.align.rotation_deg.map(f64::to_radians);
+        let [tx, ty, tz] = self.align.translation_mm;
+        Isometry3::from_parts(
+            Translation3::new(tx, ty, tz),
+            UnitQuaternion::from_euler_angles(rx, ry, rz),
+        )
+    }
+}

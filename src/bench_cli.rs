@@ -1,0 +1,454 @@
+//! The `misslam bench` subcommands: their arguments and the tables they print.
+
+use crate::write_json;
+use anyhow::Context;
+use clap::Subcommand;
+use std::path::PathBuf;
+
+#[derive(Subcommand)]
+pub(crate) enum BenchCommand {
+    /// ELAS on a rectified pair: the time of each step (median of runs; threads as
+    /// RAYON_NUM_THREADS says) and, with `--out`, the left disparity as PFM.
+    Elas {
+        /// Left image (PNG, PGM; converted to gray).
+        #[arg(long)]
+        left: PathBuf,
+        /// Right image.
+        #[arg(long)]
+        right: PathBuf,
+        /// robotics or middlebury.
+        #[arg(long, default_value = "robotics")]
+        preset: String,
+        /// Largest disparity searched.
+        #[arg(long, default_value_t = 255)]
+        disp_max: u32,
+        /// Sub-pixel refinement (off in libelas's presets).
+        #[arg(long)]
+        subpixel: bool,
+        /// Runs.
+        #[arg(long, default_value_t = 5)]
+        repeat: usize,
+        /// Write the left disparity here (PFM, NaN invalid).
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+    /// SGM on the CPU: the median time per pair and of each stage (census, forward pass,
+    /// backward pass with the selection, left-right check with median and speckles); threads as
+    /// RAYON_NUM_THREADS says.
+    Sgm {
+        /// Left image (PNG, PGM; converted to gray); without it a random-dot pair is made.
+        #[arg(long, requires = "right")]
+        left: Option<PathBuf>,
+        /// Right image.
+        #[arg(long, requires = "left")]
+        right: Option<PathBuf>,
+        /// Width of the random-dot pair.
+        #[arg(long, default_value_t = 640)]
+        width: usize,
+        /// Height of the random-dot pair.
+        #[arg(long, default_value_t = 480)]
+        height: usize,
+        /// Disparities searched.
+        #[arg(long, default_value_t = 64)]
+        disparities: u32,
+        /// Aggregation paths, 4 or 8.
+        #[arg(long, default_value_t = 8)]
+        paths: u32,
+        /// Timed runs (medians are reported).
+        #[arg(long, default_value_t = 20)]
+        repeat: usize,
+        /// Write the figures as JSON here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+    /// SGM on the GPU (WGSL kernels) against the CPU path on the same pair in the same run:
+    /// median ms per pair (upload and readback included), the stage breakdown, the parity.
+    SgmGpu {
+        /// Left image (PNG, PGM; converted to gray); without it a random-dot pair is made.
+        #[arg(long, requires = "right")]
+        left: Option<PathBuf>,
+        /// Right image.
+        #[arg(long, requires = "left")]
+        right: Option<PathBuf>,
+        /// Width of the random-dot pair.
+        #[arg(long, default_value_t = 640)]
+        width: usize,
+        /// Height of the random-dot pair.
+        #[arg(long, default_value_t = 480)]
+        height: usize,
+        /// Disparities searched.
+        #[arg(long, default_value_t = 128)]
+        disparities: u32,
+        /// Aggregation paths, 4 or 8.
+        #[arg(long, default_value_t = 8)]
+        paths: u32,
+        /// Timed runs (medians are reported).
+        #[arg(long, default_value_t = 50)]
+        repeat: usize,
+        /// Write the figures as JSON here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+    /// Render speed of the phantom (both views and all GT) per scene at 640x480 and 360x288.
+    Phantom {
+        /// Frames per configuration.
+        #[arg(long, default_value_t = 20)]
+        frames: u64,
+        /// Also write the rows as JSON here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+    /// The thesis's Fig. 5.9: a map that grows every frame while the camera sees a bounded region;
+    /// per frame, batch and decoupled ED: nodes, nodes solved, ms, mean error against GT (mm).
+    EdScaling {
+        /// Frames (the map grows from about 1,000 nodes by about 300 per frame at the defaults).
+        #[arg(long, default_value_t = 30)]
+        frames: usize,
+        /// Camera advance per frame, mm.
+        #[arg(long, default_value_t = 110.0)]
+        advance_mm: f64,
+        /// Node spacing, mm.
+        #[arg(long, default_value_t = 5.0)]
+        spacing_mm: f64,
+        /// Solver iterations per frame.
+        #[arg(long, default_value_t = 3)]
+        iterations: usize,
+        /// Batch: factorise all 12 unknowns of every node instead of first eliminating the
+        /// affine parts of the nodes without data (same solution; times what that saves).
+        #[arg(long)]
+        full_factorisation: bool,
+        /// Write the rows as JSON here (fields documented in ARCHITECTURE.md, "Benchmarks").
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+    /// ORB on an image (single thread): detect-and-describe time, Hamming kNN time of the
+    /// image's descriptors against a second image's, and the matches as JSON for scoring
+    /// (benches/features_vs_opencv.py compares with OpenCV in the same run).
+    Features {
+        /// The image (PNG, PGM; converted to gray).
+        #[arg(long)]
+        image: PathBuf,
+        /// A second image to match against (e.g. the first warped by a known homography).
+        #[arg(long)]
+        image2: Option<PathBuf>,
+        /// Keypoints wanted.
+        #[arg(long, default_value_t = 1000)]
+        n_features: usize,
+        /// quadtree, grid or none (none keeps the strongest corners, as OpenCV's ORB).
+        #[arg(long, default_value = "quadtree")]
+        distribution: String,
+        /// The ORB tests: learned (rBRIEF) or gaussian (steered BRIEF).
+        #[arg(long, default_value = "learned")]
+        pattern: String,
+        /// FAST threshold of the retry in empty cells (default: the plugin's, 7); 0 disables the
+        /// retry, which with `--distribution none` is OpenCV's ORB detection rule.
+        #[arg(long)]
+        min_fast_threshold: Option<u8>,
+        /// orb, or surf (SURF: `--n-features` caps the keypoints; timing only, no pair).
+        #[arg(long, default_value = "orb")]
+        detector: String,
+        /// Timed repetitions (the median is reported).
+        #[arg(long, default_value_t = 20)]
+        repeat: usize,
+        /// Write timings, keypoints and matches as JSON here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+    /// The scheduler's own cost per node per frame (budget: 50 us), on trivial nodes.
+    RuntimeOverhead {
+        /// Pass-through nodes per graph.
+        #[arg(long, default_value_t = 32)]
+        nodes: usize,
+        /// Frames per configuration.
+        #[arg(long, default_value_t = 5000)]
+        frames: u64,
+        /// Also write the rows as JSON here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+}
+
+/// Runs one benchmark and prints its table (and writes its JSON with `--out`).
+pub(crate) fn run(which: BenchCommand) -> anyhow::Result<()> {
+    match which {
+        BenchCommand::Phantom { frames, out } => {
+            let rows = misslam::bench::phantom(frames).map_err(anyhow::Error::msg)?;
+            out!(
+                "{:<8} {:>9} {:>7} {:>10} {:>8}",
+                "scene",
+                "size",
+                "frames",
+                "ms/frame",
+                "fps"
+            );
+            for r in &rows {
+                out!(
+                    "{:<8} {:>9} {:>7} {:>10.1} {:>8.1}",
+                    r.scene,
+                    format!("{}x{}", r.width, r.height),
+                    r.frames,
+                    r.ms_per_frame,
+                    r.fps
+                );
+            }
+            if let Some(path) = out {
+                write_json(&path, &rows)?;
+            }
+            Ok(())
+        }
+        BenchCommand::EdScaling {
+            frames,
+            advance_mm,
+            spacing_mm,
+            iterations,
+            full_factorisation,
+            out,
+        } => {
+            let p = misslam::bench::EdScalingParams {
+                frames,
+                advance_mm,
+                spacing_mm,
+                iterations,
+                full_factorisation,
+                ..Default::default()
+            };
+            let rows = misslam::bench::ed_scaling(&p).map_err(anyhow::Error::msg)?;
+            out!(
+                "{:>5} {:>7} {:>7} {:>8} {:>9} {:>4} {:>9} {:>9} {:>9} {:>8} {:>9} {:>9} {:>9}",
+                "frame",
+                "nodes",
+                "visible",
+                "batch n",
+                "batch ms",
+                "it",
+                "ms/it",
+                "batch mm",
+                "seen mm",
+                "dec n",
+                "dec ms",
+                "dec mm",
+                "seen mm"
+            );
+            for r in &rows {
+                out!(
+                    "{:>5} {:>7} {:>7} {:>8} {:>9.1} {:>4} {:>9.1} {:>9.3} {:>9.3} {:>8} {:>9.1} {:>9.3} {:>9.3}",
+                    r.frame,
+                    r.total_nodes,
+                    r.visible_points,
+                    r.batch_solved,
+                    r.batch_ms,
+                    r.batch_iterations,
+                    (r.batch_assemble_ms + r.batch_factor_ms) / r.batch_iterations.max(1) as f64,
+                    r.batch_err_mm,
+                    r.batch_seen_err_mm,
+                    r.decoupled_solved,
+                    r.decoupled_ms,
+                    r.decoupled_err_mm,
+                    r.decoupled_seen_err_mm
+                );
+            }
+            if let Some(path) = out {
+                write_json(&path, &rows)?;
+            }
+            Ok(())
+        }
+        BenchCommand::Sgm {
+            left,
+            right,
+            width,
+            height,
+            disparities,
+            paths,
+            repeat,
+            out,
+        } => {
+            let p = misslam_depth_sgm::sgm::SgmParams {
+                max_disparity: disparities,
+                paths,
+                ..Default::default()
+            };
+            let pair = left.as_deref().zip(right.as_deref());
+            let r = misslam::bench::sgm_cpu(pair, (width, height), &p, repeat)
+                .map_err(anyhow::Error::msg)?;
+            let s = &r.stages_ms;
+            out!(
+                "SGM {}x{}, {} disparities, {} paths, {} threads: {:.1} ms per pair (median of {}, fastest {:.1}); density {:.1} %",
+                r.width, r.height, r.disparities, r.paths, r.threads, r.ms, r.runs, r.min_ms, r.density_pct
+            );
+            out!(
+                "stages: census {:.2}, forward {:.2}, backward + select {:.2}, finish {:.2}, total {:.2} ms",
+                s.census_ms, s.forward_ms, s.backward_select_ms, s.finish_ms, s.total_ms
+            );
+            if let Some(path) = out {
+                write_json(&path, &r)?;
+            }
+            Ok(())
+        }
+        BenchCommand::SgmGpu {
+            left,
+            right,
+            width,
+            height,
+            disparities,
+            paths,
+            repeat,
+            out,
+        } => {
+            let p = misslam_depth_sgm::sgm::SgmParams {
+                max_disparity: disparities,
+                paths,
+                ..Default::default()
+            };
+            let pair = left.as_deref().zip(right.as_deref());
+            let r = misslam::bench::sgm_gpu(pair, (width, height), &p, repeat)
+                .map_err(anyhow::Error::msg)?;
+            let s = &r.stages_ms;
+            out!(
+                "SGM {}x{}, {} disparities, {} paths on {}",
+                r.width,
+                r.height,
+                r.disparities,
+                r.paths,
+                r.adapter
+            );
+            out!(
+                "GPU {:.3} ms per pair (median of {}, fastest {:.3}); CPU ({} threads) {:.1} ms: {:.1}x",
+                r.gpu_ms, r.runs, r.gpu_min_ms, r.cpu_threads, r.cpu_ms, r.speedup
+            );
+            out!(
+                "stages ({}): upload {:.3}, census {:.3}, aggregate {:.3}, select {:.3}, median {:.3}, readback {:.3}, speckles {:.3}, total {:.3} ms",
+                if s.gpu_timestamps { "GPU timestamps" } else { "each waited for" },
+                s.upload_ms, s.census_ms, s.aggregate_ms, s.select_ms, s.median_ms, s.readback_ms, s.speckle_ms, s.total_ms
+            );
+            out!(
+                "parity with the CPU: {} pixels differ in validity, max |diff| {:.2e} px; density {:.1} %",
+                r.validity_differs, r.max_abs_diff_px, r.density_pct
+            );
+            if let Some(path) = out {
+                write_json(&path, &r)?;
+            }
+            Ok(())
+        }
+        BenchCommand::Elas {
+            left,
+            right,
+            preset,
+            disp_max,
+            subpixel,
+            repeat,
+            out,
+        } => {
+            let mut p = match preset.as_str() {
+                "robotics" => misslam_depth_elas::ElasParams::robotics(),
+                "middlebury" => misslam_depth_elas::ElasParams::middlebury(),
+                other => anyhow::bail!("--preset `{other}`: expected robotics or middlebury"),
+            };
+            p.disp_max = disp_max;
+            p.subpixel = subpixel;
+            let r = misslam::bench::elas(&left, &right, &p, repeat).map_err(anyhow::Error::msg)?;
+            let s = r.steps_ms;
+            out!(
+                "ELAS {preset} {}x{}, disp_max {disp_max}: {:.1} ms (median of {repeat}); descriptors {:.1}, support {:.1} ({} points), triangulation {:.1}, dense {:.1}, postprocess {:.1}",
+                r.width, r.height, r.ms, s[0], s[1], r.support_points, s[2], s[3], s[4]
+            );
+            if let Some(path) = out {
+                let map = misslam::framework::FloatMap {
+                    width: r.width,
+                    height: r.height,
+                    data: r.disparity,
+                };
+                misslam::framework::pfm::write_pfm(&path, &map)
+                    .with_context(|| format!("writing {}", path.display()))?;
+            }
+            Ok(())
+        }
+        BenchCommand::Features {
+            image,
+            image2,
+            n_features,
+            distribution,
+            pattern,
+            min_fast_threshold,
+            detector,
+            repeat,
+            out,
+        } => {
+            if detector == "surf" {
+                let (n, ms) =
+                    misslam::bench::surf(&image, n_features, repeat).map_err(anyhow::Error::msg)?;
+                out!("SURF: {n} keypoints, detect+describe {ms:.2} ms (median of {repeat}, 1 thread)");
+                if let Some(path) = out {
+                    let v = serde_json::json!({ "keypoints": n, "surf_ms": ms });
+                    write_json(&path, &v)?;
+                }
+                return Ok(());
+            }
+            anyhow::ensure!(
+                detector == "orb",
+                "--detector `{detector}`: expected orb or surf"
+            );
+            let r = misslam::bench::features(
+                &image,
+                image2.as_deref(),
+                n_features,
+                &distribution,
+                &pattern,
+                min_fast_threshold,
+                repeat,
+            )
+            .map_err(anyhow::Error::msg)?;
+            out!(
+                "ORB {}x{}: {} keypoints, detect+describe {:.2} ms (median of {repeat}, 1 thread)",
+                r.width,
+                r.height,
+                r.keypoints,
+                r.orb_ms
+            );
+            if let Some(ms) = r.knn_ms {
+                out!(
+                    "Hamming 2-NN {} x {}: {:.2} ms; {} matches (ratio 0.8, cross-check)",
+                    r.keypoints,
+                    r.keypoints2,
+                    ms,
+                    r.matches.len()
+                );
+            }
+            if let Some(path) = out {
+                write_json(&path, &r)?;
+            }
+            Ok(())
+        }
+        BenchCommand::RuntimeOverhead { nodes, frames, out } => {
+            let dir = std::env::temp_dir().join(format!("misslam-bench-{}", std::process::id()));
+            let rows = misslam::bench::runtime_overhead(nodes, frames, &dir)
+                .map_err(anyhow::Error::msg)?;
+            let _ = std::fs::remove_dir_all(&dir);
+            out!(
+                "{:<6} {:>6} {:>8} {:>9} {:>11} {:>13} {:>10}",
+                "shape",
+                "nodes",
+                "frames",
+                "parallel",
+                "frame us",
+                "us/node/frame",
+                "x budget"
+            );
+            for r in &rows {
+                out!(
+                    "{:<6} {:>6} {:>8} {:>9} {:>11.2} {:>13.3} {:>10.4}",
+                    r.shape,
+                    r.nodes,
+                    r.frames,
+                    r.parallel,
+                    r.frame_us,
+                    r.per_node_us,
+                    r.budget_ratio
+                );
+            }
+            if let Some(path) = out {
+                write_json(&path, &rows)?;
+            }
+            Ok(())
+        }
+    }
+}
