@@ -2,8 +2,8 @@
 //! fields and rendered into exact vertex and normal maps by the phantom's rasteriser.
 #![allow(dead_code)]
 
-use misslam_deformation_ed::{Intrinsics, Scan};
-use misslam_framework::nalgebra::{Isometry3, Vector3};
+use misslam_deformation_ed::{Binding, Correspondence, DistanceField, EdGraph, Intrinsics, Scan};
+use misslam_framework::nalgebra::{Isometry3, Rotation3, Vector3};
 use misslam_source_phantom::render::{rasterize, scan_maps, Raster, View};
 
 pub const W: u32 = 160;
@@ -153,4 +153,54 @@ pub fn correspondences(
             normal: None,
         })
         .collect()
+}
+
+pub fn rigid(rx: f64, ry: f64, rz: f64, t: [f64; 3]) -> (Rotation3<f64>, Vector3<f64>) {
+    (
+        Rotation3::from_euler_angles(rx, ry, rz),
+        Vector3::new(t[0], t[1], t[2]),
+    )
+}
+
+/// A small scene for derivative checks: sheet, graph, scan of a deformed copy, field, correspondences.
+pub struct Scene {
+    pub points: Vec<Vector3<f64>>,
+    pub normals: Vec<Vector3<f64>>,
+    pub bindings: Vec<Binding>,
+    pub graph: EdGraph,
+    pub maps: (Vec<[f32; 3]>, Vec<[f32; 3]>),
+    pub field: DistanceField,
+    pub corr: Vec<Correspondence>,
+}
+
+pub fn small_scene() -> Scene {
+    let Sheet {
+        points,
+        tris,
+        normals,
+        graph,
+        bindings,
+    } = Sheet::new(21, 15, 6.0);
+    let moved: Vec<Vector3<f64>> = points
+        .iter()
+        .map(|p| p + Vector3::new(0.3, -0.2, 0.8 + 0.01 * p.x))
+        .collect();
+    let maps = render(&moved, &tris, &Isometry3::identity());
+    let field = DistanceField::from_scan(&maps.0, &maps.1, 0.5, 4.0, 10_000_000).unwrap();
+    let mut corr = correspondences(&points, &bindings, (0..points.len()).step_by(37), |i| {
+        moved[i] + Vector3::new(0.1, 0.0, -0.1)
+    });
+    // Every other one knows the surface normal at its target (E_corr split along it).
+    for c in corr.iter_mut().step_by(2) {
+        c.normal = Some(Vector3::new(0.1, -0.2, -1.0).normalize());
+    }
+    Scene {
+        points,
+        normals,
+        bindings,
+        graph,
+        maps,
+        field,
+        corr,
+    }
 }

@@ -1,0 +1,320 @@
+#![allow(clippy::unwrap_used)]
+//! The solver's derivatives on a small constructed scene: the analytic gradient of every term
+//! against finite differences, the parallel assembly against the serial reference on any number
+//! of threads, the Gauss-Newton Hessian against finite differences at a zero residual.
+
+mod common;
+
+use common::*;
+use misslam_deformation_ed::graph::rigid_warp;
+use misslam_deformation_ed::solver::pose_update;
+use misslam_deformation_ed::*;
+use misslam_framework::nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+
+#[test]
+fn analytic_gradient_matches_finite_differences_for_every_term() {
+    let s = small_scene();
+    let mut graph = s.graph.clone();
+    let mut rng = Lcg(7);
+    for p in graph.warp.iter_mut() {
+        for x in p.iter_mut() {
+            *x += 0.03 * rng.next();
+        }
+    }
+    let prior = Isometry3::from_parts(
+        Translation3::new(0.2, -0.1, 0.3),
+        UnitQuaternion::from_euler_angles(0.01, -0.02, 0.015),
+    );
+    let pose = Isometry3::from_parts(
+        Translation3::new(0.1, 0.05, -0.2),
+        UnitQuaternion::from_euler_angles(-0.01, 0.01, 0.0),
+    );
+    for robust in [Robust::None, Robust::Huber, Robust::Cauchy] {
+        let problem = Problem {
+            model: ModelPoints {
+                points: &s.points,
+                normals: &s.normals,
+                bindings: &s.bindings,
+            },
+            scan: Some(scan(&s.maps)),
+            field: Some(&s.field),
+            correspondences: &s.corr,
+            pose_prior: prior,
+        };
+        // The exact derivative of the field term is its gradient (the default `normal`
+        // Jacobian leaves out its part along the surface on purpose).
+        let params = SolverParams {
+            optimize_pose: true,
+            robust,
+            robust_scale_mm: 0.3,
+            field_jacobian: FieldJacobian::Gradient,
+            weights: Weights {
+                pose_rot: 0.0,
+                pose_trans: 2.0,
+                point_to_point: 0.1,
+                corr_normal: 0.3,
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        let set = SolveSet::all(&graph, true);
+        let mut solver = Solver::default();
+        let (_, g, slot, _) = solver
+            .linearize_dense(&graph, &pose, &problem, &set, &params)
+            .unwrap();
+        assert!(
+            solver.associations() > 100,
+            "{} associations",
+            solver.associations()
+        );
+        let h = 1e-6;
+        let mut worst = 0.0f64;
+        let scale = g.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+        for j in 0..graph.len() {
+            for q in 0..12 {
+                let mut gp = graph.clone();
+                gp.warp[j][q] += h;
+                let cp = solver.cost_fixed_association(&gp, &pose, &problem, &set, &params);
+                gp.warp[j][q] -= 2.0 * h;
+                let cm = solver.cost_fixed_association(&gp, &pose, &problem, &set, &params);
+                let fd = (cp - cm) / (2.0 * h) / 2.0;
+                let an = g[12 * slot[j] as usize + q];
+                worst = worst.max((fd - an).abs() / scale);
+            }
+        }
+        let off = 12 * graph.len();
+        for q in 0..6 {
+            let mut xi = [0.0; 6];
+            xi[q] = h;
+            let cp = solver.cost_fixed_association(
+                &graph,
+                &pose_update(&pose, &xi),
+                &problem,
+                &set,
+                &params,
+            );
+            xi[q] = -h;
+            let cm = solver.cost_fixed_association(
+                &graph,
+                &pose_update(&pose, &xi),
+                &problem,
+                &set,
+                &params,
+            );
+            let fd = (cp - cm) / (2.0 * h) / 2.0;
+            // The pose-prior rotation Jacobian is the identity approximation of J_r^-1 (exact at
+            // zero residual); with a residual of 0.03 rad it is off by O(r^2).
+            worst = worst.max((fd - g[off + q]).abs() / scale);
+        }
+        assert!(
+            worst < 1e-5,
+            "{robust:?}: worst relative gradient error {worst:e}"
+        );
+    }
+}
+
+#[test]
+fn the_parallel_assembly_equals_the_serial_reference_on_any_number_of_threads() {
+    // Every data term (projective with point-to-point rows, field, correspondences), the pose,
+    // a robust kernel, a perturbed warp; once over every node, once over a subset with the rest
+    // held fixed (the decoupled solver's level I shape, some couplings half outside).
+    let s = small_scene();
+    let mut graph = s.graph.clone();
+    let mut rng = Lcg(11);
+    for p in graph.warp.iter_mut() {
+        for x in p.iter_mut() {
+            *x += 0.02 * rng.next();
+        }
+    }
+    let pose = Isometry3::from_parts(
+        Translation3::new(0.1, 0.05, -0.2),
+        UnitQuaternion::from_euler_angles(-0.01, 0.01, 0.02),
+    );
+    let problem = Problem {
+        model: ModelPoints {
+            points: &s.points,
+            normals: &s.normals,
+            bindings: &s.bindings,
+        },
+        scan: Some(scan(&s.maps)),
+        field: Some(&s.field),
+        correspondences: &s.corr,
+        pose_prior: Isometry3::identity(),
+    };
+    let params = SolverParams {
+        optimize_pose: true,
+        robust: Robust::Huber,
+        robust_scale_mm: 0.3,
+        weights: Weights {
+            point_to_point: 0.1,
+            corr_normal: 0.3,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    // Both Jacobians of the field term; they must give different systems.
+    let [normal, gradient] =
+        [FieldJacobian::Normal, FieldJacobian::Gradient].map(|field_jacobian| {
+            let params = SolverParams {
+                field_jacobian,
+                ..params.clone()
+            };
+            parallel_equals_serial(&graph, &pose, &problem, &params)
+        });
+    assert!(normal != gradient, "the field Jacobian made no difference");
+}
+
+fn parallel_equals_serial(
+    graph: &EdGraph,
+    pose: &Isometry3<f64>,
+    problem: &Problem,
+    params: &SolverParams,
+) -> Vec<f64> {
+    let all = SolveSet::all(graph, true);
+    let subset = SolveSet {
+        free: (0..graph.len() as u32).filter(|j| j % 3 != 1).collect(),
+        reg_edges: all.reg_edges.clone(),
+        data: true,
+        pose: false,
+    };
+    let pool = |n| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build()
+            .unwrap()
+    };
+    for set in [&all, &subset] {
+        let (h_ref, g_ref, _, _) = Solver::default()
+            .linearize_dense_reference(graph, pose, problem, set, params)
+            .unwrap();
+        let run = |threads| {
+            pool(threads).install(|| {
+                Solver::default()
+                    .linearize_dense(graph, pose, problem, set, params)
+                    .unwrap()
+            })
+        };
+        let (h1, g1, _, _) = run(1);
+        let (h3, g3, _, _) = run(3);
+        assert!(
+            h1 == h3 && g1 == g3,
+            "the system depends on the thread count"
+        );
+        let hs = h_ref.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+        let gs = g_ref.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+        assert!(hs > 0.0 && gs > 0.0);
+        let eh = h1
+            .iter()
+            .zip(&h_ref)
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        let eg = g1
+            .iter()
+            .zip(&g_ref)
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        assert!(
+            eh <= 1e-12 * hs && eg <= 1e-12 * gs,
+            "free {}: Hessian off by {eh:e} of {hs:e}, gradient by {eg:e} of {gs:e}",
+            set.free.len()
+        );
+    }
+    Solver::default()
+        .linearize_dense(graph, pose, problem, &all, params)
+        .unwrap()
+        .1
+}
+
+#[test]
+fn gauss_newton_hessian_matches_finite_differences_at_a_zero_residual() {
+    // State: every node carries the same rigid motion, the scan is that motion of the sheet, the
+    // correspondences are exact and the pose equals the prior: every residual is zero, so the cost's
+    // Hessian is exactly 2 J^T W J.
+    let Sheet {
+        points,
+        tris,
+        normals,
+        mut graph,
+        bindings,
+    } = Sheet::new(21, 15, 7.0);
+    let (r, t) = rigid(0.02, -0.03, 0.05, [0.5, -0.3, 1.0]);
+    for j in 0..graph.len() {
+        graph.warp[j] = rigid_warp(&r, &t, &graph.nodes()[j]);
+    }
+    let moved: Vec<Vector3<f64>> = points.iter().map(|p| r * p + t).collect();
+    let maps = render(&moved, &tris, &Isometry3::identity());
+    let corr: Vec<Correspondence> =
+        correspondences(&points, &bindings, (0..points.len()).step_by(29), |i| {
+            moved[i]
+        });
+    let pose = Isometry3::identity();
+    let problem = Problem {
+        model: ModelPoints {
+            points: &points,
+            normals: &normals,
+            bindings: &bindings,
+        },
+        scan: Some(scan(&maps)),
+        field: None,
+        correspondences: &corr,
+        pose_prior: pose,
+    };
+    let params = SolverParams {
+        optimize_pose: true,
+        weights: Weights {
+            point_to_point: 0.0,
+            pose_rot: 30.0,
+            pose_trans: 3.0,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let set = SolveSet::all(&graph, true);
+    let mut solver = Solver::default();
+    let (hm, g, slot, cost) = solver
+        .linearize_dense(&graph, &pose, &problem, &set, &params)
+        .unwrap();
+    assert!(cost < 1e-6, "residuals are not zero: cost {cost}");
+    let n = g.len();
+    // Column of the Hessian for a few unknowns by central differences of the analytic gradient.
+    let h = 1e-5;
+    let mut worst = 0.0f64;
+    let hscale = hm.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+    let probes: Vec<(usize, usize)> = (0..graph.len())
+        .step_by(3)
+        .flat_map(|j| [(j, 0), (j, 3), (j, 6), (j, 11)])
+        .collect();
+    for &(j, q) in &probes {
+        let mut gp = graph.clone();
+        gp.warp[j][q] += h;
+        let mut sp = Solver::default();
+        let (_, g_plus, _, _) = sp
+            .linearize_dense(&gp, &pose, &problem, &set, &params)
+            .unwrap();
+        gp.warp[j][q] -= 2.0 * h;
+        let (_, g_minus, _, _) = sp
+            .linearize_dense(&gp, &pose, &problem, &set, &params)
+            .unwrap();
+        let col = 12 * slot[j] as usize + q;
+        for row in 0..n {
+            let fd = (g_plus[row] - g_minus[row]) / (2.0 * h);
+            worst = worst.max((fd - hm[row * n + col]).abs() / hscale);
+        }
+    }
+    for q in 0..6 {
+        let mut xi = [0.0; 6];
+        xi[q] = h;
+        let mut sp = Solver::default();
+        let (_, g_plus, _, _) = sp
+            .linearize_dense(&graph, &pose_update(&pose, &xi), &problem, &set, &params)
+            .unwrap();
+        xi[q] = -h;
+        let (_, g_minus, _, _) = sp
+            .linearize_dense(&graph, &pose_update(&pose, &xi), &problem, &set, &params)
+            .unwrap();
+        let col = 12 * graph.len() + q;
+        for row in 0..n {
+            let fd = (g_plus[row] - g_minus[row]) / (2.0 * h);
+            worst = worst.max((fd - hm[row * n + col]).abs() / hscale);
+        }
+    }
+    assert!(worst < 1e-4, "worst relative Hessian error {worst:e}");
+}
