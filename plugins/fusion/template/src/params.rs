@@ -112,7 +112,9 @@ pub struct Params {
     pub template_path: Option<PathBuf>,
     /// Without a pre-operative mesh: the first frame's scan, triangulated on a pixel grid, is
     /// the template (e.g. `template_from_scan = { stride_px = 4, max_edge_mm = 3.0 }`); the
-    /// given pose places it (it is already on the scan), and the later frames deform it.
+    /// given pose places it (it is already on the scan), and the later frames deform it. Set,
+    /// it is used even when the `template` input is connected; with `template_path` it is an
+    /// error.
     pub template_from_scan: Option<ScanTemplateParams>,
     /// "dff" (distance field) or "projective" (back-projection).
     pub data_term: DataTerm,
