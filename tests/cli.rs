@@ -121,11 +121,21 @@ fn inspect_on_hamlyn_saves_a_recording_the_rerun_cli_verifies() {
     let Some(data) = common::data_set("hamlyn20") else {
         return;
     };
-    let out_dir = common::tmp_dir("inspect");
+    // Both schedules record every frame: one frame at a time, and pipelined (the collector
+    // logs each frame as it leaves the last level).
+    for pipeline in ["1", "2"] {
+        inspect_recording(&data, pipeline);
+    }
+}
+
+fn inspect_recording(data: &std::path::Path, pipeline: &str) {
+    let out_dir = common::tmp_dir(&format!("inspect{pipeline}"));
     let rrd = out_dir.join("out.rrd");
     let out = misslam()
         .args(["run", "graphs/inspect.toml", "--quiet", "--set"])
         .arg(format!("src.path={}", data.display()))
+        .arg("--set")
+        .arg(format!("graph.pipeline={pipeline}"))
         .arg("--out")
         .arg(&out_dir)
         .arg("--rerun")
@@ -141,6 +151,7 @@ fn inspect_on_hamlyn_saves_a_recording_the_rerun_cli_verifies() {
         serde_json::from_str(&std::fs::read_to_string(out_dir.join("metrics.json")).unwrap())
             .unwrap();
     assert_eq!(metrics["frames"]["processed"], 17);
+    assert_eq!(metrics["pipeline"].to_string(), pipeline);
     assert_eq!(metrics["frames"]["skipped"], 0);
     assert!(out_dir.join("files/left/000016.png").is_file());
     assert!(out_dir.join("files/image/000000.png").is_file());

@@ -76,12 +76,16 @@ struct StepParams {
     panic_on: Option<u64>,
     /// Wait for a partner node to run at the same time (parallel test).
     rendezvous: bool,
+    /// On this frame, wait until some node is inside `process` on another frame (pipeline test).
+    hold_on: Option<u64>,
 }
 
 struct Step {
     p: StepParams,
     log: Log,
     rendezvous: Arc<AtomicUsize>,
+    /// The frames of the holding calls now inside `process`.
+    inside: Arc<Mutex<Vec<u64>>>,
     evals: usize,
 }
 
@@ -108,6 +112,27 @@ impl Node for Step {
                     return Err(NodeError::msg("partner never ran concurrently"));
                 }
                 std::hint::spin_loop();
+            }
+        }
+        if self.p.hold_on == Some(f.index) {
+            self.inside.lock().unwrap().push(f.index);
+            let t = Instant::now();
+            let overlapped = loop {
+                if self.inside.lock().unwrap().iter().any(|&g| g != f.index) {
+                    break true;
+                }
+                if t.elapsed() > Duration::from_secs(3) {
+                    break false;
+                }
+                std::thread::sleep(Duration::from_millis(1));
+            };
+            // Seen by the partner before this call leaves: hold on until it has looked.
+            std::thread::sleep(Duration::from_millis(20));
+            self.inside.lock().unwrap().retain(|&g| g != f.index);
+            if !overlapped {
+                return Err(NodeError::msg(
+                    "no other frame was in the graph at the same time",
+                ));
             }
         }
         let v = inp.get::<misslam::framework::DisparityMap>("value")?;
@@ -142,6 +167,7 @@ fn registry(log: Log) -> Registry {
     ))
     .unwrap();
     let rendezvous = Arc::new(AtomicUsize::new(0));
+    let inside = Arc::default();
     r.register(TypedPlugin::new(
         "test.step",
         "adds",
@@ -155,6 +181,7 @@ fn registry(log: Log) -> Registry {
                 p,
                 log: log.clone(),
                 rendezvous: rendezvous.clone(),
+                inside: Arc::clone(&inside),
                 evals: 0,
             })
         },
@@ -375,4 +402,111 @@ fn policy_names_parse() {
             ("join".into(), 2)
         ]
     );
+}
+
+/// What a run did, comparable between schedules: counts, skipped frames, the error, the last
+/// level's figure, and what every node saw on every frame.
+struct Outcome {
+    summary: String,
+    seen: Vec<(String, u64, u32)>,
+}
+
+fn outcome(text: &str, sets: &[&str], name: &str) -> Outcome {
+    let (report, log) = run(text, sets, name);
+    let m = &report.metrics;
+    let summary = format!(
+        "processed {} skipped {:?} join {:?} error {:?}",
+        m.frames.processed,
+        m.frames.skipped_frames,
+        m.eval.get("join.frames"),
+        report.error.map(|e| e.to_string())
+    );
+    let mut seen: Vec<(String, u64, u32)> = log
+        .iter()
+        .map(|e| (e.0.clone(), e.1, e.2.to_bits()))
+        .collect();
+    seen.sort();
+    Outcome { summary, seen }
+}
+
+#[test]
+fn the_pipelined_schedule_gives_the_serial_outputs() {
+    // (overrides, the frame an abort stops the run at)
+    let cases: [(&[&str], Option<u64>); 6] = [
+        (&[], None),
+        (&["left.fail_on=2"], None),
+        (&["join.panic_on=1"], None),
+        (&["graph.on_error=abort", "right.fail_on=3"], Some(3)),
+        (&["graph.on_error=abort", "join.fail_on=2"], Some(2)),
+        (&["graph.frames.start=1", "graph.frames.count=2"], None),
+    ];
+    for (i, &(sets, stop)) in cases.iter().enumerate() {
+        let serial = outcome(DIAMOND, sets, &format!("serial{i}"));
+        let piped = [sets, &["graph.pipeline=3"]].concat();
+        let (report, _) = run(DIAMOND, &piped, &format!("piped_report{i}"));
+        assert_eq!(report.metrics.pipeline, 3, "{sets:?}");
+        let p = outcome(DIAMOND, &piped, &format!("piped{i}"));
+        assert_eq!(p.summary, serial.summary, "{sets:?}");
+        let Some(stop) = stop else {
+            assert_eq!(p.seen, serial.seen, "{sets:?}");
+            continue;
+        };
+        // After an abort the serial schedule's calls are all there; earlier levels may have
+        // run up to 2 (frames in flight - 1) frames further, and nothing else.
+        let extra: Vec<&(String, u64, u32)> =
+            p.seen.iter().filter(|e| !serial.seen.contains(e)).collect();
+        assert!(serial.seen.iter().all(|e| p.seen.contains(e)), "{sets:?}");
+        assert!(
+            extra
+                .iter()
+                .all(|e| e.0 != "join" && e.1 > stop && e.1 <= stop + 2),
+            "{sets:?}: {extra:?}"
+        );
+    }
+}
+
+#[test]
+fn the_pipelined_schedule_overlaps_frames() {
+    if std::thread::available_parallelism().map_or(1, |n| n.get()) < 2 {
+        println!("skipped: one CPU, nothing can run in parallel");
+        return;
+    }
+    // `join` (the last level) holds frame 2 until another frame is inside a node, and `left`
+    // (the level before it) holds frame 3 likewise: both return only if the two frames are in
+    // the graph at once.
+    let sets = ["join.hold_on=2", "left.hold_on=3", "graph.pipeline=3"];
+    let (report, log) = run(DIAMOND, &sets, "overlap");
+    assert!(report.error.is_none());
+    assert_eq!(
+        report.metrics.frames.skipped, 0,
+        "{:?}",
+        report.metrics.frames.skipped_frames
+    );
+    assert_eq!(report.metrics.frames.processed, 5);
+    assert_eq!(log.iter().filter(|e| e.0 == "join").count(), 5);
+    let t = &report.metrics.timing_ms;
+    assert_eq!(t["_frame"].frames, 5);
+    assert_eq!(t["_interval"].frames, 4, "between 5 completed frames");
+    // The serial schedule cannot overlap them: both frames are skipped, each after its wait.
+    let (serial, _) = run(DIAMOND, &sets[..2], "no_overlap");
+    let skipped: Vec<(u64, &str)> = serial
+        .metrics
+        .frames
+        .skipped_frames
+        .iter()
+        .map(|s| (s.frame, s.node.as_str()))
+        .collect();
+    assert_eq!(skipped, [(2, "join"), (3, "left")]);
+}
+
+#[test]
+fn the_pipelined_schedule_stops_at_the_end_of_the_stream() {
+    // No frame count: the source's end of the stream ends the run, in both schedules.
+    for sets in [&[][..], &["graph.pipeline=3"][..]] {
+        let (report, log) = run(DIAMOND, sets, "eos");
+        assert!(report.error.is_none());
+        assert_eq!(report.metrics.frames.processed, 5, "{sets:?}");
+        let frames: Vec<u64> = log.iter().filter(|e| e.0 == "join").map(|e| e.1).collect();
+        assert_eq!(frames, [0, 1, 2, 3, 4], "{sets:?}");
+    }
 }

@@ -84,13 +84,17 @@ pub struct RunMetrics {
     pub overrides: Vec<String>,
     /// Frame counts.
     pub frames: FrameCounts,
-    /// Per-node timing in ms, plus `_frame` for the whole frame (scheduling included) and
-    /// `_rerun` for logging.
+    /// Per-node timing in ms, plus `_frame` for the whole frame (from its start in the first
+    /// level to its end in the last, scheduling included), `_interval` for the time between two
+    /// completed frames (the run's throughput) and `_rerun` for logging.
     pub timing_ms: BTreeMap<String, TimingStats>,
     /// Figures reported by evaluation nodes, e.g. `depth.mae_mm`.
     pub eval: BTreeMap<String, f64>,
     /// Wall time of the whole run, seconds.
     pub wall_s: f64,
+    /// Frames in the graph at once (`[graph] pipeline`; 1 when the levels ran one frame at a
+    /// time).
+    pub pipeline: u32,
     /// Set when the run stopped on an error: what happened.
     pub aborted: Option<String>,
     /// The parameters every node ran with, after defaults and overrides.

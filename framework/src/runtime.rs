@@ -14,6 +14,8 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
+mod pipeline;
+
 use crate::gpu::GpuProvider;
 use crate::graph::{ErrorPolicy, Graph, Source};
 use crate::metrics::{FrameCounts, RunMetrics, SkippedFrame, TimingStats};
@@ -96,7 +98,7 @@ pub struct RunReport {
     pub error: Option<RunError>,
 }
 
-struct Slot {
+pub(crate) struct Slot {
     id: String,
     node: Box<dyn Node>,
     in_specs: Vec<PortSpec>,
@@ -109,6 +111,7 @@ struct Slot {
     eval: BTreeMap<String, f64>,
     stages: BTreeMap<String, Vec<f64>>,
     last: Option<Result<Flow, String>>,
+    last_ms: Option<f64>,
 }
 
 /// A graph with its nodes built, ready to run.
@@ -158,6 +161,7 @@ impl Runtime {
                 eval: BTreeMap::new(),
                 stages: BTreeMap::new(),
                 last: None,
+                last_ms: None,
             });
         }
         // Nodes are sorted by level: each level is a contiguous range.
@@ -204,8 +208,10 @@ impl Runtime {
 
         let mut counts = FrameCounts::default();
         let mut frame_ms = Vec::new();
+        let mut interval_ms = Vec::new();
         let mut rerun_ms = Vec::new();
         let mut error: Option<RunError> = None;
+        let pipelined = self.graph.pipeline > 1 && self.levels.len() > 1;
 
         // start
         for slot in &mut self.slots {
@@ -228,55 +234,65 @@ impl Runtime {
             }
         }
 
-        let mut ordinal = 0u64;
-        while error.is_none() && limit.is_none_or(|n| ordinal < n) {
-            let frame = FrameInfo {
-                index: self.graph.frames.start + ordinal,
-                ordinal,
+        if error.is_none() {
+            let env = Env {
+                out_dir: &out_dir,
+                graph_dir: &graph_dir,
+                seed,
+                gpu: &self.gpu,
+                parallel: self.graph.parallel,
             };
-            let t0 = Instant::now();
-            match self.run_frame(frame, &out_dir, &graph_dir, seed) {
-                FrameOutcome::Done => {
-                    frame_ms.push(t0.elapsed().as_secs_f64() * 1e3);
-                    counts.processed += 1;
-                    if let Some(r) = recorder.as_mut() {
-                        let t1 = Instant::now();
-                        if let Err(e) = self.log_frame(r, frame.index) {
-                            error = Some(e.into());
-                        }
-                        rerun_ms.push(t1.elapsed().as_secs_f64() * 1e3);
-                    }
-                }
-                FrameOutcome::EndOfStream => break,
-                FrameOutcome::Failed { node, message } => match self.graph.on_error {
-                    ErrorPolicy::Abort => {
-                        error = Some(RunError::Frame {
-                            frame: frame.index,
-                            node,
-                            message,
-                        });
-                    }
-                    ErrorPolicy::SkipFrame => {
-                        tracing::warn!(
-                            "frame {}: node `{node}`: {message}; frame skipped",
-                            frame.index
+            let mut collector = Collector {
+                policy: self.graph.on_error,
+                logged: self
+                    .slots
+                    .iter()
+                    .map(|s| (s.id.clone(), s.out_specs.clone(), s.log))
+                    .collect(),
+                recorder: recorder.as_mut(),
+                progress: opts.progress.as_mut(),
+                limit,
+                counts: &mut counts,
+                frame_ms: &mut frame_ms,
+                interval_ms: &mut interval_ms,
+                rerun_ms: &mut rerun_ms,
+                error: &mut error,
+                last_done: None,
+                ordinal: 0,
+            };
+            let frames = Frames {
+                start: self.graph.frames.start,
+                limit,
+                outputs: self.slots.iter().map(|s| s.out_specs.len()).collect(),
+            };
+            if pipelined {
+                let schedule = pipeline::Schedule {
+                    levels: &self.levels,
+                    frames: &frames,
+                    in_flight: self.graph.pipeline,
+                    policy: self.graph.on_error,
+                };
+                pipeline::run(&mut self.slots, &schedule, &env, &mut collector);
+            } else {
+                let mut ordinal = 0u64;
+                while frames.limit.is_none_or(|n| ordinal < n) {
+                    let mut state = frames.state(ordinal);
+                    for level in &self.levels {
+                        run_level(
+                            &mut self.slots[level.clone()],
+                            level.start,
+                            &mut state,
+                            &env,
                         );
-                        counts.skipped += 1;
-                        counts.skipped_frames.push(SkippedFrame {
-                            frame: frame.index,
-                            node,
-                            error: message,
-                        });
+                        if !matches!(state.outcome, FrameOutcome::Done) {
+                            break;
+                        }
                     }
-                },
-            }
-            for slot in &mut self.slots {
-                slot.outputs.iter_mut().for_each(|o| *o = None);
-                slot.inputs.iter_mut().for_each(|i| *i = None);
-            }
-            ordinal += 1;
-            if let Some(p) = opts.progress.as_mut() {
-                p(ordinal, limit);
+                    if collector.take(state) {
+                        break;
+                    }
+                    ordinal += 1;
+                }
             }
         }
 
@@ -316,6 +332,7 @@ impl Runtime {
             frames: counts,
             wall_s: started.elapsed().as_secs_f64(),
             aborted: error.as_ref().map(|e| e.to_string()),
+            pipeline: if pipelined { self.graph.pipeline } else { 1 },
             ..Default::default()
         };
         for (slot, spec) in self.slots.iter().zip(&self.graph.nodes) {
@@ -337,6 +354,9 @@ impl Runtime {
         metrics
             .timing_ms
             .insert("_frame".into(), TimingStats::from_samples(&frame_ms));
+        metrics
+            .timing_ms
+            .insert("_interval".into(), TimingStats::from_samples(&interval_ms));
         if !rerun_ms.is_empty() {
             metrics
                 .timing_ms
@@ -357,111 +377,239 @@ impl Runtime {
             error,
         })
     }
-
-    fn run_frame(
-        &mut self,
-        frame: FrameInfo,
-        out_dir: &Path,
-        graph_dir: &Path,
-        seed: u64,
-    ) -> FrameOutcome {
-        let parallel = self.graph.parallel;
-        let gpu = &self.gpu;
-        for level in self.levels.clone() {
-            let (done, current) = self.slots.split_at_mut(level.start);
-            let current = &mut current[..level.len()];
-            for slot in current.iter_mut() {
-                for (input, src) in slot.inputs.iter_mut().zip(&slot.sources) {
-                    *input = src.and_then(|s| done[s.node].outputs[s.port].clone());
-                }
-            }
-            let run_one = |slot: &mut Slot| {
-                let mut ctx = node_ctx(
-                    &slot.id,
-                    out_dir,
-                    graph_dir,
-                    seed,
-                    gpu,
-                    &mut slot.eval,
-                    &mut slot.stages,
-                );
-                let inputs = Inputs {
-                    specs: &slot.in_specs,
-                    values: &slot.inputs,
-                };
-                let mut outputs = Outputs {
-                    specs: &slot.out_specs,
-                    values: &mut slot.outputs,
-                };
-                let t = Instant::now();
-                let node = &mut slot.node;
-                let mut result = guarded(|| node.process(&mut ctx, frame, &inputs, &mut outputs));
-                let ms = t.elapsed().as_secs_f64() * 1e3;
-                if let Ok(Flow::Continue) = result {
-                    if let Some(missing) = slot
-                        .out_specs
-                        .iter()
-                        .zip(slot.outputs.iter())
-                        .find(|(s, v)| !s.optional && v.is_none())
-                    {
-                        result = Err(format!("did not produce its output `{}`", missing.0.name));
-                    }
-                    slot.times_ms.push(ms);
-                }
-                slot.last = Some(result);
-            };
-            if parallel && current.len() > 1 {
-                current.par_iter_mut().for_each(run_one);
-            } else {
-                current.iter_mut().for_each(run_one);
-            }
-            for slot in current.iter_mut() {
-                match slot.last.take() {
-                    Some(Ok(Flow::Continue)) | None => {}
-                    Some(Ok(Flow::EndOfStream)) => return FrameOutcome::EndOfStream,
-                    Some(Err(message)) => {
-                        return FrameOutcome::Failed {
-                            node: slot.id.clone(),
-                            message,
-                        }
-                    }
-                }
-            }
-        }
-        FrameOutcome::Done
-    }
-
-    fn log_frame(&self, rec: &mut Recorder, frame: u64) -> Result<(), RecorderError> {
-        let input_time = self
-            .slots
-            .iter()
-            .flat_map(|s| s.outputs.iter().flatten())
-            .find_map(|p| match p {
-                Payload::Stereo(s) => Some(s.timestamp),
-                _ => None,
-            });
-        rec.begin_frame(frame, input_time);
-        for slot in &self.slots {
-            if let Some(ms) = slot.times_ms.last() {
-                rec.log_timing(&slot.id, *ms)?;
-            }
-            if !slot.log {
-                continue;
-            }
-            for (spec, value) in slot.out_specs.iter().zip(&slot.outputs) {
-                if let Some(p) = value {
-                    rec.log_payload(&format!("{}/{}", slot.id, spec.name), p)?;
-                }
-            }
-        }
-        Ok(())
-    }
 }
 
-enum FrameOutcome {
+/// How a frame ended.
+pub(crate) enum FrameOutcome {
     Done,
     EndOfStream,
     Failed { node: String, message: String },
+}
+
+/// What every node call of a run shares.
+pub(crate) struct Env<'a> {
+    out_dir: &'a Path,
+    graph_dir: &'a Path,
+    seed: u64,
+    gpu: &'a GpuProvider,
+    parallel: bool,
+}
+
+/// The frames a run asks for.
+pub(crate) struct Frames {
+    start: u64,
+    /// At most this many frames.
+    pub(crate) limit: Option<u64>,
+    /// Output ports per node.
+    outputs: Vec<usize>,
+}
+
+impl Frames {
+    /// The empty state of the frame with this ordinal.
+    pub(crate) fn state(&self, ordinal: u64) -> FrameState {
+        FrameState {
+            info: FrameInfo {
+                index: self.start + ordinal,
+                ordinal,
+            },
+            outputs: self.outputs.iter().map(|&n| vec![None; n]).collect(),
+            times_ms: vec![None; self.outputs.len()],
+            outcome: FrameOutcome::Done,
+            started: Instant::now(),
+        }
+    }
+}
+
+/// One frame on its way through the levels: what each node produced for it, how long each took,
+/// and how the frame ended.
+pub(crate) struct FrameState {
+    pub(crate) info: FrameInfo,
+    /// Per node (graph order), its outputs on this frame.
+    outputs: Vec<Vec<Option<Payload>>>,
+    /// Per node, its `process` time on this frame.
+    times_ms: Vec<Option<f64>>,
+    pub(crate) outcome: FrameOutcome,
+    started: Instant,
+}
+
+/// Runs the nodes of one level (`slots`, the first being node `offset` of the graph) on a frame:
+/// inputs from the frame's outputs of earlier levels, outputs into the frame. The first node (in
+/// graph order) that fails or ends the stream decides the frame's outcome; the level's other
+/// nodes have run, as in one level of the serial schedule.
+pub(crate) fn run_level(slots: &mut [Slot], offset: usize, state: &mut FrameState, env: &Env) {
+    for slot in slots.iter_mut() {
+        for (input, src) in slot.inputs.iter_mut().zip(&slot.sources) {
+            *input = src.and_then(|s| state.outputs[s.node][s.port].clone());
+        }
+    }
+    let frame = state.info;
+    let run_one = |slot: &mut Slot| {
+        let mut ctx = node_ctx(
+            &slot.id,
+            env.out_dir,
+            env.graph_dir,
+            env.seed,
+            env.gpu,
+            &mut slot.eval,
+            &mut slot.stages,
+        );
+        let inputs = Inputs {
+            specs: &slot.in_specs,
+            values: &slot.inputs,
+        };
+        let mut outputs = Outputs {
+            specs: &slot.out_specs,
+            values: &mut slot.outputs,
+        };
+        let t = Instant::now();
+        let node = &mut slot.node;
+        let mut result = guarded(|| node.process(&mut ctx, frame, &inputs, &mut outputs));
+        let ms = t.elapsed().as_secs_f64() * 1e3;
+        slot.last_ms = None;
+        if let Ok(Flow::Continue) = result {
+            if let Some(missing) = slot
+                .out_specs
+                .iter()
+                .zip(slot.outputs.iter())
+                .find(|(s, v)| !s.optional && v.is_none())
+            {
+                result = Err(format!("did not produce its output `{}`", missing.0.name));
+            }
+            slot.times_ms.push(ms);
+            slot.last_ms = Some(ms);
+        }
+        slot.last = Some(result);
+    };
+    if env.parallel && slots.len() > 1 {
+        slots.par_iter_mut().for_each(run_one);
+    } else {
+        slots.iter_mut().for_each(run_one);
+    }
+    for (i, slot) in slots.iter_mut().enumerate() {
+        slot.inputs.iter_mut().for_each(|x| *x = None);
+        std::mem::swap(&mut slot.outputs, &mut state.outputs[offset + i]);
+        state.times_ms[offset + i] = slot.last_ms.take();
+        let outcome = match slot.last.take() {
+            Some(Ok(Flow::Continue)) | None => continue,
+            Some(Ok(Flow::EndOfStream)) => FrameOutcome::EndOfStream,
+            Some(Err(message)) => FrameOutcome::Failed {
+                node: slot.id.clone(),
+                message,
+            },
+        };
+        if matches!(state.outcome, FrameOutcome::Done) {
+            state.outcome = outcome;
+        }
+    }
+}
+
+/// Takes the frames in order as they complete: counts them, applies the error policy, records
+/// them and reports progress.
+pub(crate) struct Collector<'a> {
+    policy: ErrorPolicy,
+    /// Per node: id, output ports, whether its outputs are recorded.
+    logged: Vec<(String, Vec<PortSpec>, bool)>,
+    recorder: Option<&'a mut Recorder>,
+    progress: Option<&'a mut ProgressFn>,
+    limit: Option<u64>,
+    counts: &'a mut FrameCounts,
+    frame_ms: &'a mut Vec<f64>,
+    interval_ms: &'a mut Vec<f64>,
+    rerun_ms: &'a mut Vec<f64>,
+    error: &'a mut Option<RunError>,
+    /// When the last completed frame arrived.
+    last_done: Option<Instant>,
+    /// Frames taken.
+    ordinal: u64,
+}
+
+impl Collector<'_> {
+    /// Takes the next frame; true when the run must stop (end of the stream, an abort, a
+    /// recording error).
+    pub(crate) fn take(&mut self, state: FrameState) -> bool {
+        let mut stop = false;
+        match state.outcome {
+            FrameOutcome::Done => {
+                let now = Instant::now();
+                self.frame_ms
+                    .push((now - state.started).as_secs_f64() * 1e3);
+                if let Some(t) = self.last_done {
+                    self.interval_ms.push((now - t).as_secs_f64() * 1e3);
+                }
+                self.last_done = Some(now);
+                self.counts.processed += 1;
+                if let Some(r) = self.recorder.as_deref_mut() {
+                    let t1 = Instant::now();
+                    if let Err(e) = log_frame(r, &self.logged, &state) {
+                        *self.error = Some(e.into());
+                        stop = true;
+                    }
+                    self.rerun_ms.push(t1.elapsed().as_secs_f64() * 1e3);
+                }
+            }
+            FrameOutcome::EndOfStream => return true,
+            FrameOutcome::Failed { node, message } => match self.policy {
+                ErrorPolicy::Abort => {
+                    *self.error = Some(RunError::Frame {
+                        frame: state.info.index,
+                        node,
+                        message,
+                    });
+                    return true;
+                }
+                ErrorPolicy::SkipFrame => {
+                    tracing::warn!(
+                        "frame {}: node `{node}`: {message}; frame skipped",
+                        state.info.index
+                    );
+                    self.counts.skipped += 1;
+                    self.counts.skipped_frames.push(SkippedFrame {
+                        frame: state.info.index,
+                        node,
+                        error: message,
+                    });
+                }
+            },
+        }
+        self.ordinal += 1;
+        if let Some(p) = self.progress.as_deref_mut() {
+            p(self.ordinal, self.limit);
+        }
+        stop
+    }
+}
+
+fn log_frame(
+    rec: &mut Recorder,
+    logged: &[(String, Vec<PortSpec>, bool)],
+    state: &FrameState,
+) -> Result<(), RecorderError> {
+    let input_time = state
+        .outputs
+        .iter()
+        .flatten()
+        .flatten()
+        .find_map(|p| match p {
+            Payload::Stereo(s) => Some(s.timestamp),
+            _ => None,
+        });
+    rec.begin_frame(state.info.index, input_time);
+    for ((id, out_specs, log), (outputs, ms)) in
+        logged.iter().zip(state.outputs.iter().zip(&state.times_ms))
+    {
+        if let Some(ms) = ms {
+            rec.log_timing(id, *ms)?;
+        }
+        if !log {
+            continue;
+        }
+        for (spec, value) in out_specs.iter().zip(outputs) {
+            if let Some(p) = value {
+                rec.log_payload(&format!("{id}/{}", spec.name), p)?;
+            }
+        }
+    }
+    Ok(())
 }
 
 fn node_ctx<'a>(

@@ -74,6 +74,7 @@ struct GraphSection {
     out: Option<String>,
     on_error: Option<ErrorPolicy>,
     parallel: Option<bool>,
+    pipeline: Option<Spanned<u32>>,
     #[serde(default)]
     libraries: Vec<Spanned<String>>,
 }
@@ -144,6 +145,11 @@ pub struct Graph {
     pub on_error: ErrorPolicy,
     /// Whether independent nodes of one level may run in parallel.
     pub parallel: bool,
+    /// Frames in the graph at once: 1 runs each frame through every level before the next
+    /// starts; more run the levels as a pipeline, each on its own thread, so that later frames
+    /// are in the early levels while earlier ones are in the late levels (the same outputs, a
+    /// higher throughput).
+    pub pipeline: u32,
     /// Nodes in topological order.
     pub nodes: Vec<NodeSpec>,
 }
@@ -238,6 +244,12 @@ pub fn parse(
         .collect::<Result<_, _>>()?;
     for o in parsed.iter().filter(|o| o.target == "graph") {
         apply_graph_override(file, &mut section, o)?;
+    }
+    if let Some(p) = section.pipeline.as_ref().filter(|p| *p.get_ref() == 0) {
+        return Err(at(
+            p.span(),
+            "`pipeline` takes the number of frames in the graph at once, at least 1 (1: one frame at a time)".into(),
+        ));
     }
 
     // Nodes: ids, plugins, params.
@@ -589,6 +601,7 @@ pub fn parse(
         out,
         on_error: section.on_error.unwrap_or_default(),
         parallel: section.parallel.unwrap_or(true),
+        pipeline: section.pipeline.as_ref().map_or(1, |p| *p.get_ref()),
         nodes,
     })
 }
@@ -614,6 +627,14 @@ fn apply_graph_override(file: &Path, g: &mut GraphSection, o: &Override) -> Resu
         "name" => g.name = Some(v.as_str().ok_or_else(|| err("`graph.name` takes a string".into()))?.to_owned()),
         "out" => g.out = Some(v.as_str().ok_or_else(|| err("`graph.out` takes a path".into()))?.to_owned()),
         "parallel" => g.parallel = Some(v.as_bool().ok_or_else(|| err("`graph.parallel` takes true or false".into()))?),
+        "pipeline" => {
+            let n = v
+                .as_integer()
+                .and_then(|n| u32::try_from(n).ok())
+                .filter(|&n| n >= 1)
+                .ok_or_else(|| err("`graph.pipeline` takes the number of frames in the graph at once, at least 1".into()))?;
+            g.pipeline = Some(Spanned::new(0..0, n));
+        }
         "on_error" => {
             g.on_error = Some(match v.as_str() {
                 Some("abort") => ErrorPolicy::Abort,
@@ -623,7 +644,7 @@ fn apply_graph_override(file: &Path, g: &mut GraphSection, o: &Override) -> Resu
         }
         _ => {
             return Err(err(format!(
-                "unknown graph setting `{key}`; known: seed, frames.start, frames.count, name, out, parallel, on_error"
+                "unknown graph setting `{key}`; known: seed, frames.start, frames.count, name, out, parallel, pipeline, on_error"
             )))
         }
     }
