@@ -217,6 +217,26 @@ impl Model {
 }
 
 /// Stage times of one frame, ms, for `metrics.json` (`fusion.<stage>` under `timing_ms`).
+/// What one depth sample does to the model.
+enum Sample {
+    /// It meets surfel `surfel`: its offset from the surfel's live position and its normal, both
+    /// taken back to the canonical frame, and its colour.
+    Fuse {
+        surfel: u32,
+        offset: Vector3<f64>,
+        normal: Vector3<f64>,
+        color: [u8; 3],
+        quality: f32,
+    },
+    /// It meets none: a new surfel (world frame).
+    New {
+        point: Vector3<f64>,
+        normal: Vector3<f64>,
+        color: [u8; 3],
+        quality: f32,
+    },
+}
+
 struct Stages {
     times: Vec<(&'static str, f64)>,
     lap: std::time::Instant,
@@ -436,68 +456,116 @@ impl SurfelNode {
             let nm = graph.normal_matrices();
             let cfw = pose.inverse();
             let (gw, gh) = (w.div_ceil(stride), h.div_ceil(stride));
+            // Each surfel's cell and depth (in parallel), then the front-most surfel of each
+            // cell (in surfel order, so ties go to the first as in one pass).
+            let projected: Vec<(u32, f32)> = live
+                .par_iter()
+                .map(|p| {
+                    let pc = cfw * Point3::from(*p);
+                    if pc.z <= 0.0 {
+                        return (u32::MAX, 0.0);
+                    }
+                    let u = (k.fx * pc.x / pc.z + k.cx).round();
+                    let v = (k.fy * pc.y / pc.z + k.cy).round();
+                    if u < 0.0 || v < 0.0 || u >= w as f64 || v >= h as f64 {
+                        return (u32::MAX, 0.0);
+                    }
+                    (
+                        ((v as usize / stride) * gw + u as usize / stride) as u32,
+                        pc.z as f32,
+                    )
+                })
+                .collect();
             let mut cell: Vec<(f32, u32)> = vec![(f32::INFINITY, u32::MAX); gw * gh];
-            for (s, p) in live.iter().enumerate() {
-                let pc = cfw * Point3::from(*p);
-                if pc.z <= 0.0 {
-                    continue;
-                }
-                let u = (k.fx * pc.x / pc.z + k.cx).round();
-                let v = (k.fy * pc.y / pc.z + k.cy).round();
-                if u < 0.0 || v < 0.0 || u >= w as f64 || v >= h as f64 {
-                    continue;
-                }
-                let c = (v as usize / stride) * gw + u as usize / stride;
-                if (pc.z as f32) < cell[c].0 {
-                    cell[c] = (pc.z as f32, s as u32);
+            for (s, &(c, z)) in projected.iter().enumerate() {
+                if c != u32::MAX && z < cell[c as usize].0 {
+                    cell[c as usize] = (z, s as u32);
                 }
             }
             let cos_f = self.p.fuse_angle_deg.to_radians().cos();
-            let mut new_points = Vec::new();
-            for gy in 0..gh {
-                for gx in 0..gw {
-                    let (x, y) = (gx * stride, gy * stride);
-                    let i = y * w + x;
-                    let (v, n) = (self.vertices[i], self.scan_normals[i]);
-                    if !v.iter().chain(&n).all(|c| c.is_finite()) {
-                        continue;
-                    }
-                    let wp = (pose * Point3::from(vec3(v))).coords;
-                    let wn = pose.rotation * vec3(n);
-                    let color = color_at(left, i);
-                    let quality = color_quality(n, color);
-                    // The surfel this sample meets: the closest, within epsilon_df, of the
-                    // front-most surfels of its cell and the 8 around it. Surfels are points,
-                    // so a cell can be empty where the surface is modelled (the view moved or
-                    // came closer): looking one cell further keeps such a sample from adding
-                    // a duplicate beside a surfel of the same surface.
-                    let mut best: Option<(f64, usize)> = None;
-                    let mut turned_away = false;
-                    for cy in gy.saturating_sub(1)..(gy + 2).min(gh) {
-                        for cx in gx.saturating_sub(1)..(gx + 2).min(gw) {
-                            let (_, s) = cell[cy * gw + cx];
-                            if s == u32::MAX {
-                                continue;
-                            }
-                            let s = s as usize;
-                            let dist = (wp - live[s]).norm();
-                            if dist > self.p.fuse_distance_mm {
-                                continue;
-                            }
-                            if wn.dot(&live_n[s]) < cos_f {
-                                turned_away = true;
-                            } else if best.is_none_or(|(b, _)| dist < b) {
-                                best = Some((dist, s));
+            // What each sample meets, row by row in parallel (reading the live model only); the
+            // updates are then applied in sample order, as one pass over the samples would.
+            let vertices = &self.vertices;
+            let scan_normals = &self.scan_normals;
+            let (canon_bindings, fuse_distance) = (&m.bindings, self.p.fuse_distance_mm);
+            let hits: Vec<Vec<Sample>> = (0..gh)
+                .into_par_iter()
+                .map(|gy| {
+                    let mut row = Vec::new();
+                    for gx in 0..gw {
+                        let (x, y) = (gx * stride, gy * stride);
+                        let i = y * w + x;
+                        let (v, n) = (vertices[i], scan_normals[i]);
+                        if !v.iter().chain(&n).all(|c| c.is_finite()) {
+                            continue;
+                        }
+                        let wp = (pose * Point3::from(vec3(v))).coords;
+                        let wn = pose.rotation * vec3(n);
+                        let color = color_at(left, i);
+                        let quality = color_quality(n, color);
+                        // The surfel this sample meets: the closest, within epsilon_df, of the
+                        // front-most surfels of its cell and the 8 around it. Surfels are
+                        // points, so a cell can be empty where the surface is modelled (the view
+                        // moved or came closer): looking one cell further keeps such a sample
+                        // from adding a duplicate beside a surfel of the same surface.
+                        let mut best: Option<(f64, usize)> = None;
+                        let mut turned_away = false;
+                        for cy in gy.saturating_sub(1)..(gy + 2).min(gh) {
+                            for cx in gx.saturating_sub(1)..(gx + 2).min(gw) {
+                                let (_, s) = cell[cy * gw + cx];
+                                if s == u32::MAX {
+                                    continue;
+                                }
+                                let s = s as usize;
+                                let dist = (wp - live[s]).norm();
+                                if dist > fuse_distance {
+                                    continue;
+                                }
+                                if wn.dot(&live_n[s]) < cos_f {
+                                    turned_away = true;
+                                } else if best.is_none_or(|(b, _)| dist < b) {
+                                    best = Some((dist, s));
+                                }
                             }
                         }
+                        if let Some((_, s)) = best {
+                            // The live offset and normal taken back to the canonical frame.
+                            let (a_inv, a_t) = local_inverses(&canon_bindings[s], &nm);
+                            row.push(Sample::Fuse {
+                                surfel: s as u32,
+                                offset: a_inv * (wp - live[s]),
+                                normal: a_t * wn,
+                                color,
+                                quality,
+                            });
+                        } else if !turned_away {
+                            // Close but turned away: neither fused nor a duplicate.
+                            row.push(Sample::New {
+                                point: wp,
+                                normal: wn,
+                                color,
+                                quality,
+                            });
+                        }
                     }
-                    if let Some((_, s)) = best {
-                        let d = wp - live[s];
-                        let (a_inv, a_t) = local_inverses(&m.bindings[s], &nm);
+                    row
+                })
+                .collect();
+            let mut new_points = Vec::new();
+            for sample in hits.into_iter().flatten() {
+                match sample {
+                    Sample::Fuse {
+                        surfel: s,
+                        offset,
+                        normal,
+                        color,
+                        quality,
+                    } => {
+                        let s = s as usize;
                         let wgt = m.weights[s];
                         let alpha = 1.0 / (wgt as f64 + 1.0);
-                        m.canon[s] += a_inv * d * alpha;
-                        let cn = m.normals[s] * (1.0 - alpha) + a_t * wn * alpha;
+                        m.canon[s] += offset * alpha;
+                        let cn = m.normals[s] * (1.0 - alpha) + normal * alpha;
                         m.normals[s] = cn.try_normalize(1e-12).unwrap_or(m.normals[s]);
                         if quality >= m.color_quality[s] {
                             m.colors[s] = color;
@@ -507,13 +575,13 @@ impl SurfelNode {
                         m.seen[s] = frame.index;
                         m.stability[s] += 1.0;
                         fused += 1;
-                        continue;
                     }
-                    if turned_away {
-                        // Close but turned away: neither fused nor a duplicate.
-                        continue;
-                    }
-                    new_points.push((wp, wn, color, quality));
+                    Sample::New {
+                        point,
+                        normal,
+                        color,
+                        quality,
+                    } => new_points.push((point, normal, color, quality)),
                 }
             }
             st.lap("fuse");
