@@ -118,6 +118,20 @@ impl RunMetrics {
             "frames processed: {}, skipped: {}, wall {:.2} s\n",
             self.frames.processed, self.frames.skipped, self.wall_s
         ));
+        if let (Some(i), Some(f)) = (
+            self.timing_ms.get("_interval"),
+            self.timing_ms.get("_frame"),
+        ) {
+            if i.frames > 0 && i.median_ms > 0.0 {
+                s.push_str(&format!(
+                    "throughput {:.1} fps (median {:.1} ms between frames), latency {:.1} ms (median), {} in the graph at once\n",
+                    1e3 / i.median_ms,
+                    i.median_ms,
+                    f.median_ms,
+                    self.pipeline
+                ));
+            }
+        }
         for (k, v) in &self.eval {
             s.push_str(&format!("{k:<24} {v:.4}\n"));
         }
@@ -178,6 +192,31 @@ mod tests {
         f.add([("a".to_owned(), 3.0), ("b".to_owned(), 4.0)]);
         let means: Vec<(&str, f64)> = f.means().collect();
         assert_eq!(means, [("a", 2.0), ("b", 4.0)]);
+    }
+
+    #[test]
+    fn the_summary_gives_the_throughput_and_the_latency() {
+        let mut m = RunMetrics {
+            pipeline: 2,
+            ..Default::default()
+        };
+        assert!(
+            !m.summary_table().contains("throughput"),
+            "no frames, no rate"
+        );
+        m.timing_ms.insert(
+            "_interval".into(),
+            TimingStats::from_samples(&[25.0, 20.0, 30.0]),
+        );
+        m.timing_ms.insert(
+            "_frame".into(),
+            TimingStats::from_samples(&[50.0, 40.0, 60.0, 45.0]),
+        );
+        let t = m.summary_table();
+        assert!(
+            t.contains("throughput 40.0 fps (median 25.0 ms between frames), latency 47.5 ms (median), 2 in the graph at once"),
+            "{t}"
+        );
     }
 
     #[test]
