@@ -84,8 +84,8 @@ struct Step {
     p: StepParams,
     log: Log,
     rendezvous: Arc<AtomicUsize>,
-    /// The frames of the holding calls now inside `process`.
-    inside: Arc<Mutex<Vec<u64>>>,
+    /// The frames of the holding calls now inside `process`, and whether each has met another.
+    inside: Arc<Mutex<Vec<(u64, bool)>>>,
     evals: usize,
 }
 
@@ -115,20 +115,26 @@ impl Node for Step {
             }
         }
         if self.p.hold_on == Some(f.index) {
-            self.inside.lock().unwrap().push(f.index);
+            self.inside.lock().unwrap().push((f.index, false));
             let t = Instant::now();
             let overlapped = loop {
-                if self.inside.lock().unwrap().iter().any(|&g| g != f.index) {
-                    break true;
+                {
+                    let mut inside = self.inside.lock().unwrap();
+                    // Another frame is inside now: both know it (the other may look only after
+                    // this call has left).
+                    if inside.iter().any(|&(g, _)| g != f.index) {
+                        inside.iter_mut().for_each(|e| e.1 = true);
+                    }
+                    if inside.iter().any(|&(g, met)| g == f.index && met) {
+                        break true;
+                    }
                 }
                 if t.elapsed() > Duration::from_secs(3) {
                     break false;
                 }
                 std::thread::sleep(Duration::from_millis(1));
             };
-            // Seen by the partner before this call leaves: hold on until it has looked.
-            std::thread::sleep(Duration::from_millis(20));
-            self.inside.lock().unwrap().retain(|&g| g != f.index);
+            self.inside.lock().unwrap().retain(|&(g, _)| g != f.index);
             if !overlapped {
                 return Err(NodeError::msg(
                     "no other frame was in the graph at the same time",
