@@ -424,22 +424,24 @@ pub(crate) fn run(which: BenchCommand) -> anyhow::Result<()> {
                 .map_err(anyhow::Error::msg)?;
             let _ = std::fs::remove_dir_all(&dir);
             out!(
-                "{:<6} {:>6} {:>8} {:>9} {:>11} {:>13} {:>10}",
+                "{:<6} {:>6} {:>8} {:>9} {:>9} {:>11} {:>13} {:>10}",
                 "shape",
                 "nodes",
                 "frames",
                 "parallel",
+                "pipeline",
                 "frame us",
                 "us/node/frame",
                 "x budget"
             );
             for r in &rows {
                 out!(
-                    "{:<6} {:>6} {:>8} {:>9} {:>11.2} {:>13.3} {:>10.4}",
+                    "{:<6} {:>6} {:>8} {:>9} {:>9} {:>11.2} {:>13.3} {:>10.4}",
                     r.shape,
                     r.nodes,
                     r.frames,
                     r.parallel,
+                    r.pipeline,
                     r.frame_us,
                     r.per_node_us,
                     r.budget_ratio

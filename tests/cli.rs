@@ -207,7 +207,12 @@ fn runtime_overhead_bench_writes_its_rows() {
     let rows: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     let rows = rows.as_array().unwrap();
-    assert_eq!(rows.len(), 3);
+    assert_eq!(rows.len(), 4);
+    let pipelines: Vec<u64> = rows
+        .iter()
+        .map(|r| r["pipeline"].as_u64().unwrap())
+        .collect();
+    assert_eq!(pipelines, [1, 1, 1, 4]);
     for r in rows {
         assert_eq!(r["nodes"], 3);
         assert_eq!(r["frames"], 20);

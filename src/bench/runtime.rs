@@ -90,6 +90,8 @@ pub struct OverheadRow {
     pub frames: u64,
     /// Whether a level's nodes ran in parallel.
     pub parallel: bool,
+    /// Frames in the graph at once (`graph.pipeline`; above 1, a thread per level).
+    pub pipeline: u32,
     /// Wall time per frame, microseconds.
     pub frame_us: f64,
     /// Wall time per node per frame, microseconds (everything: the nodes do no work).
@@ -98,8 +100,8 @@ pub struct OverheadRow {
     pub budget_ratio: f64,
 }
 
-fn graph_text(shape: &str, nodes: usize, parallel: bool) -> String {
-    let mut t = format!("[graph]\nname = \"overhead\"\nparallel = {parallel}\n\n[[node]]\nid = \"src\"\nplugin = \"bench.source\"\n");
+fn graph_text(shape: &str, nodes: usize, parallel: bool, pipeline: u32) -> String {
+    let mut t = format!("[graph]\nname = \"overhead\"\nparallel = {parallel}\npipeline = {pipeline}\n\n[[node]]\nid = \"src\"\nplugin = \"bench.source\"\n");
     for i in 0..nodes {
         let from = if shape == "chain" && i > 0 {
             format!("n{}", i - 1)
@@ -121,8 +123,15 @@ pub fn runtime_overhead(
 ) -> Result<Vec<OverheadRow>, String> {
     let reg = registry();
     let mut rows = Vec::new();
-    for (shape, parallel) in [("chain", false), ("fan", false), ("fan", true)] {
-        let text = graph_text(shape, nodes, parallel);
+    // The last row runs the chain as a pipeline: every node is a level of its own, with a thread
+    // each, so it measures the hand-over of a frame from one thread to the next.
+    for (shape, parallel, pipeline) in [
+        ("chain", false, 1),
+        ("fan", false, 1),
+        ("fan", true, 1),
+        ("chain", false, 4),
+    ] {
+        let text = graph_text(shape, nodes, parallel, pipeline);
         let g = graph::parse(Path::new("overhead.toml"), &text, &reg, &[])
             .map_err(|e| e.to_string())?;
         let rt = Runtime::build(g).map_err(|e| e.to_string())?;
@@ -144,6 +153,7 @@ pub fn runtime_overhead(
             nodes,
             frames,
             parallel,
+            pipeline,
             frame_us,
             per_node_us,
             budget_ratio: per_node_us / 50.0,
