@@ -316,8 +316,9 @@ pub(crate) fn run(which: BenchCommand) -> anyhow::Result<()> {
                 r.gpu_ms, r.runs, r.gpu_min_ms, r.cpu_threads, r.cpu_ms, r.speedup
             );
             out!(
-                "stages ({}): upload {:.3}, census {:.3}, aggregate {:.3}, select {:.3}, median {:.3}, readback {:.3}, speckles {:.3}, total {:.3} ms",
+                "stages ({}; {}): upload {:.3}, census {:.3}, aggregate {:.3}, select {:.3}, median {:.3}, readback {:.3}, speckles {:.3}, total {:.3} ms",
                 if s.gpu_timestamps { "GPU timestamps" } else { "each waited for" },
+                if s.summed_volumes { "costs summed into one volume" } else { "a volume per direction" },
                 s.upload_ms, s.census_ms, s.aggregate_ms, s.select_ms, s.median_ms, s.readback_ms, s.speckle_ms, s.total_ms
             );
             out!(

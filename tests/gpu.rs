@@ -127,7 +127,7 @@ fn stereo_scene(w: usize, h: usize, seed: u64) -> (Vec<u8>, Vec<u8>) {
 #[test]
 fn sgm_kernels_match_the_cpu_path() {
     use misslam_depth_sgm::gpu::SgmGpu;
-    use misslam_depth_sgm::sgm::{sgm, Scratch, SgmParams};
+    use misslam_depth_sgm::sgm::{sgm, GpuVolumes, Scratch, SgmParams};
     let Some(ctx) = gpu() else { return };
     let mut kernels = SgmGpu::new(&ctx);
     let cases = [
@@ -210,6 +210,20 @@ fn sgm_kernels_match_the_cpu_path() {
                 w * h
             );
             assert!(max_diff <= 1e-4, "{name}: max |diff| {max_diff} px");
+            // The directions' costs summed into one volume (atomic adds) give the same output.
+            let summed = SgmParams {
+                gpu_volumes: GpuVolumes::Summed,
+                ..*p
+            };
+            let (got_summed, t) = kernels.run(&ctx, &left, &right, w, h, m, &summed).unwrap();
+            assert!(t.summed_volumes && !timing.summed_volumes, "{name}");
+            assert!(
+                got_summed
+                    .iter()
+                    .zip(&got)
+                    .all(|(a, b)| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan())),
+                "{name}: summed volumes differ from the per-direction ones"
+            );
             if p.speckle_window > 0 {
                 // The speckle kernels had work to do: without them the output differs.
                 let q = SgmParams {
@@ -236,6 +250,47 @@ fn sgm_kernels_match_the_cpu_path() {
 }
 
 #[test]
+fn sgm_at_the_h100_target_size_runs_on_this_adapter() {
+    // Issue 4's GPU configuration, 640x480 with 128 disparities over 8 paths, whose volumes of L
+    // per direction (315 MB) exceed the storage buffers of Mesa's lavapipe (128 MiB): there the
+    // costs are summed into one volume (79 MB), on an H100 they stay per direction. Either way
+    // the output is the CPU path's.
+    use misslam_depth_sgm::gpu::SgmGpu;
+    use misslam_depth_sgm::sgm::{sgm, Scratch, SgmParams};
+    let Some(ctx) = gpu() else { return };
+    let (w, h) = (640, 480);
+    let p = SgmParams {
+        max_disparity: 128,
+        ..SgmParams::default()
+    };
+    let (left, right) = stereo_scene(w, h, 5);
+    let want = sgm(&left, &right, w, h, None, &p, &mut Scratch::default()).unwrap();
+    let (got, timing) = SgmGpu::new(&ctx)
+        .run(&ctx, &left, &right, w, h, None, &p)
+        .unwrap();
+    let limits = ctx.device.limits();
+    let per_direction = (w * h * 128 * 8) as u64;
+    assert_eq!(
+        timing.summed_volumes,
+        per_direction
+            > limits
+                .max_storage_buffer_binding_size
+                .min(limits.max_buffer_size),
+        "summed exactly where a volume per direction does not fit"
+    );
+    let (validity, max_diff) = misslam::bench::disparity_parity(&got, &want);
+    println!(
+        "640x480x128, 8 paths: {validity} pixels differ in validity, max |diff| {max_diff:.2e} px; summed {}; GPU {:.0} ms",
+        timing.summed_volumes, timing.total_ms
+    );
+    assert!(
+        validity * 1000 <= w * h,
+        "{validity} pixels differ in validity"
+    );
+    assert!(max_diff <= 1e-4, "max |diff| {max_diff} px");
+}
+
+#[test]
 fn depth_sgm_on_the_gpu_scores_as_on_the_cpu() {
     // graphs/depth_sgm_phantom.toml with one line changed (`depth.device`), scored against the
     // phantom's exact depth: the same disparities, so the same figures (within the parabola's
@@ -244,7 +299,8 @@ fn depth_sgm_on_the_gpu_scores_as_on_the_cpu() {
         return;
     }
     let mut scores = Vec::new();
-    for device in ["cpu", "gpu"] {
+    // The GPU twice: a volume of costs per direction, and the costs summed into one.
+    for (device, volumes) in [("cpu", "auto"), ("gpu", "per_direction"), ("gpu", "summed")] {
         let sets: Vec<String> = [
             "src.width=160",
             "src.height=120",
@@ -254,12 +310,15 @@ fn depth_sgm_on_the_gpu_scores_as_on_the_cpu() {
         ]
         .iter()
         .map(|s| s.to_string())
-        .chain([format!("depth.device=\"{device}\"")])
+        .chain([
+            format!("depth.device=\"{device}\""),
+            format!("depth.gpu_volumes=\"{volumes}\""),
+        ])
         .collect();
         let report = common::run_graph_file(
             "graphs/depth_sgm_phantom.toml",
             &sets,
-            &common::tmp_dir(&format!("sgm-phantom-{device}")),
+            &common::tmp_dir(&format!("sgm-phantom-{device}-{volumes}")),
         );
         assert!(report.error.is_none(), "{device}: {:?}", report.error);
         let eval = &report.metrics.eval;
@@ -269,7 +328,7 @@ fn depth_sgm_on_the_gpu_scores_as_on_the_cpu() {
             eval["depth.mae_mm"],
         );
         println!(
-            "{device}: bad2 valid {:.3} %, density {:.1} %, MAE {:.3} mm",
+            "{device} ({volumes}): bad2 valid {:.3} %, density {:.1} %, MAE {:.3} mm",
             s.0, s.1, s.2
         );
         assert!(s.1 > 80.0, "{device}: density {} %", s.1);
@@ -277,10 +336,16 @@ fn depth_sgm_on_the_gpu_scores_as_on_the_cpu() {
     }
     // The same integers; the parabola's f32 division may round differently on a GPU (about
     // 4e-6 px on an H100, exact on lavapipe), which moves the scores by far less than this.
-    let (c, g) = (scores[0], scores[1]);
-    assert!(
-        (c.0 - g.0).abs() <= 0.05 && (c.1 - g.1).abs() <= 0.05 && (c.2 - g.2).abs() <= 1e-3,
-        "CPU and GPU score differently: {c:?} vs {g:?}"
+    let c = scores[0];
+    for g in &scores[1..] {
+        assert!(
+            (c.0 - g.0).abs() <= 0.05 && (c.1 - g.1).abs() <= 0.05 && (c.2 - g.2).abs() <= 1e-3,
+            "CPU and GPU score differently: {c:?} vs {g:?}"
+        );
+    }
+    assert_eq!(
+        scores[1], scores[2],
+        "the summed costs give the same disparities"
     );
 }
 

@@ -7,7 +7,11 @@
 // through double-buffered workgroup memory: one barrier per pixel. The census codes of the
 // next pixel are loaded before the barrier, so their latency hides behind it. Each
 // direction writes its own volume of L (u8 or u16 per disparity, BYTES), row-major by pixel
-// with DP = 4 * THREADS disparities per pixel; the selection kernel sums them.
+// with DP = 4 * THREADS disparities per pixel; the selection kernel sums them. With SUMMED = 1
+// (for adapters whose storage buffers cannot hold a volume per direction) every direction adds
+// its L instead into one volume of sums, u16 per disparity, two to a word, by atomic adds: the
+// sums are integers, so their order does not matter, and no lane carries into the next (eight
+// paths of at most 64 + 4000 each; padding disparities add 0).
 // CPU reference: misslam_depth_sgm::reference (one traversal per direction) and the SIMD passes
 // of misslam_depth_sgm::sgm, which give the same integers:
 //   L(p, d) = C(p, d) + min(L(p-r, d), L(p-r, d-1) + P1, L(p-r, d+1) + P1, min_k L(p-r, k) + P2)
@@ -15,7 +19,7 @@
 // with C the Hamming distance of the census codes (or `unknown` when x - d - dmin leaves the
 // right image) and P2 divided by the intensity step when `p2_adaptive` is set. L <= C + P2, so
 // the host picks BYTES = 1 when the largest C plus P2 fits a byte.
-// The host specialises THREADS, PATHS and BYTES (lines `const NAME: u32 = ...;`).
+// The host specialises THREADS, PATHS, BYTES and SUMMED (lines `const NAME: u32 = ...;`).
 
 struct Dir {
     dx: i32,
@@ -47,6 +51,7 @@ struct Params {
 const THREADS: u32 = 32u;
 const PATHS: u32 = 2u;
 const BYTES: u32 = 1u;
+const SUMMED: u32 = 0u;
 const BIG: u32 = 0x3fffffffu;
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -55,6 +60,8 @@ const BIG: u32 = 0x3fffffffu;
 // (hi, lo) census code per pixel, the left image then the right one.
 @group(0) @binding(2) var<storage, read> codes: array<vec2<u32>>;
 @group(0) @binding(3) var<storage, read_write> volumes: array<u32>;
+// The volume of sums (SUMMED = 1); a placeholder otherwise.
+@group(0) @binding(4) var<storage, read_write> sums: array<atomic<u32>>;
 
 // Per buffer and path: each invocation's L at its lowest and highest disparity, and its minimum.
 var<workgroup> lo: array<array<array<u32, THREADS>, PATHS>, 2>;
@@ -223,9 +230,14 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid
             cur = select(cur, vec4<u32>(BIG), padding);
             prev = cur;
             let local_min = min(min(cur.x, cur.y), min(cur.z, cur.w));
-            // Store L: BYTES per disparity, little-endian within a word.
+            // Store L: BYTES per disparity, little-endian within a word, or add it to the sums.
             let at = base + (i * (4u * THREADS) + d0) * BYTES / 4u;
-            if (BYTES == 1u) {
+            if (SUMMED == 1u) {
+                let b = select(cur & vec4<u32>(0xffffu), vec4<u32>(0u), padding);
+                let s = (i * (4u * THREADS) + d0) / 2u;
+                atomicAdd(&sums[s], b.x | (b.y << 16u));
+                atomicAdd(&sums[s + 1u], b.z | (b.w << 16u));
+            } else if (BYTES == 1u) {
                 let b = cur & vec4<u32>(0xffu);
                 volumes[at] = b.x | (b.y << 8u) | (b.z << 16u) | (b.w << 24u);
             } else {

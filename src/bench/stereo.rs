@@ -295,6 +295,7 @@ pub fn sgm_gpu(
         speckle_ms: med(&|t| t.speckle_ms),
         total_ms: med(&|t| t.total_ms),
         gpu_timestamps: stages.iter().all(|t| t.gpu_timestamps),
+        summed_volumes: stages.iter().any(|t| t.summed_volumes),
     };
     let mut scratch = Scratch::default();
     let mut cpu_out = Vec::new();

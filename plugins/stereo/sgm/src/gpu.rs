@@ -4,7 +4,9 @@
 //! 2. aggregation along all 4 or 8 directions in one dispatch: a path per THREADS invocations, each
 //!    invocation holding four consecutive disparities in a vec4, one barrier per pixel;
 //!    each direction writes its own volume of L, as bytes when the largest cost plus P2 fits
-//!    one (the default parameters) and as u16 otherwise;
+//!    one (the default parameters) and as u16 otherwise; or, where the adapter's storage
+//!    buffers cannot hold a volume per direction (`gpu_volumes`), every direction adds its L into
+//!    one volume of u16 sums by atomic adds, which the selection reads as one u16 volume;
 //! 3. selection, one workgroup per row: the sums of the volumes, the winner with the uniqueness
 //!    margin and the parabola, the right image's winners (atomic minima in workgroup memory) and
 //!    the left-right check;
@@ -18,7 +20,7 @@
 use std::collections::HashMap;
 
 use crate::reference::{DIRS, DIRS4};
-use crate::sgm::{check_pair, SgmParams};
+use crate::sgm::{check_pair, GpuVolumes, SgmParams};
 use misslam_framework::gpu::{GpuContext, GpuError};
 
 /// WGSL of the kernels.
@@ -66,6 +68,8 @@ pub struct SgmGpuTiming {
     /// submitted and waited for on its own ([`SgmGpu::set_staged`]), which adds each
     /// submission's latency.
     pub gpu_timestamps: bool,
+    /// True when the directions' costs were summed into one volume (`gpu_volumes`).
+    pub summed_volumes: bool,
 }
 
 /// How the aggregation kernel is specialised for a disparity count and cost bound.
@@ -77,6 +81,8 @@ struct Layout {
     paths: u32,
     /// Bytes per stored L (1 or 2).
     bytes: u32,
+    /// One volume of sums instead of a volume per direction.
+    summed: bool,
 }
 
 impl Layout {
@@ -97,12 +103,59 @@ impl Layout {
             threads,
             paths,
             bytes,
+            summed: false,
         }
     }
 
     /// Disparities per pixel in a volume.
     fn dp(&self) -> u32 {
         4 * self.threads
+    }
+
+    /// Bytes of the aggregated costs of a `w` x `h` image over `dirs` directions: one volume
+    /// per direction, or one of u16 sums.
+    fn volumes_bytes(&self, w: usize, h: usize, dirs: usize) -> u64 {
+        let px = (w * h) as u64;
+        if self.summed {
+            px * u64::from(self.dp()) * 2
+        } else {
+            px * u64::from(self.dp() * self.bytes) * dirs as u64
+        }
+    }
+
+    /// The layout for these parameters where storage buffers hold at most `max` bytes: per
+    /// direction or summed, as `gpu_volumes` asks and `max` allows.
+    fn choose(p: &SgmParams, w: usize, h: usize, dirs: usize, max: u64) -> Result<Layout, String> {
+        let per_direction = Layout::of(p);
+        let summed = Layout {
+            summed: true,
+            ..per_direction
+        };
+        let layout = match p.gpu_volumes {
+            GpuVolumes::PerDirection => per_direction,
+            GpuVolumes::Summed => summed,
+            GpuVolumes::Auto if per_direction.volumes_bytes(w, h, dirs) <= max => per_direction,
+            GpuVolumes::Auto => summed,
+        };
+        let need = layout.volumes_bytes(w, h, dirs);
+        if need > max {
+            return Err(format!(
+                "the path costs of {w}x{h}x{} over {dirs} directions need {need} bytes {}, beyond the GPU's storage buffer limit of {max} bytes: use device = \"cpu\", fewer disparities{}",
+                p.max_disparity,
+                if layout.summed { "even summed" } else { "with a volume per direction" },
+                if layout.summed { "" } else { " or gpu_volumes = \"summed\" (or \"auto\")" },
+            ));
+        }
+        Ok(layout)
+    }
+
+    /// How the selection kernel reads the costs: (bytes per entry, volumes).
+    fn selected(&self, dirs: u32) -> (u32, u32) {
+        if self.summed {
+            (2, 1)
+        } else {
+            (self.bytes, dirs)
+        }
     }
 }
 
@@ -149,6 +202,8 @@ struct Frame {
     select_u: wgpu::Buffer,
     median_u: wgpu::Buffer,
     speckle_u: wgpu::Buffer,
+    /// The aggregated costs: a volume per direction, or the sums.
+    volumes: wgpu::Buffer,
     census_bg: wgpu::BindGroup,
     aggregate_bg: wgpu::BindGroup,
     select_bg: wgpu::BindGroup,
@@ -248,13 +303,15 @@ impl SgmGpu {
                 ("THREADS", l.threads),
                 ("PATHS", l.paths),
                 ("BYTES", l.bytes),
+                ("SUMMED", u32::from(l.summed)),
             ],
         )?;
+        let (sel_bytes, sel_dirs) = l.selected(dirs);
         let sel = specialise(
             SELECT_WGSL,
             &[
-                ("BYTES", l.bytes),
-                ("DIRS", dirs),
+                ("BYTES", sel_bytes),
+                ("DIRS", sel_dirs),
                 ("THREADS", SELECT_THREADS),
             ],
         )?;
@@ -287,12 +344,23 @@ impl SgmGpu {
         use wgpu::BufferUsages as U;
         let px = (w * h) as u64;
         let image_words = (w * h).div_ceil(4) as u64;
-        let volume_bytes = px * u64::from(l.dp() * l.bytes);
         let images = buffer("sgm images", 8 * image_words, U::STORAGE | U::COPY_DST);
         let mask = buffer("sgm mask", 4 * image_words, U::STORAGE | U::COPY_DST);
         let upload = buffer("sgm upload", 12 * image_words, U::MAP_WRITE | U::COPY_SRC);
         let codes = buffer("sgm census", 2 * px * 8, U::STORAGE);
-        let volumes = buffer("sgm volumes", dirs as u64 * volume_bytes, U::STORAGE);
+        // The aggregated costs (the sums are cleared before each pair), and a placeholder for the
+        // aggregation's binding the layout does not use.
+        let volumes = buffer(
+            "sgm volumes",
+            l.volumes_bytes(w, h, dirs),
+            U::STORAGE | U::COPY_DST,
+        );
+        let placeholder = buffer("sgm volumes placeholder", 16, U::STORAGE);
+        let (per_direction, sums) = if l.summed {
+            (&placeholder, &volumes)
+        } else {
+            (&volumes, &placeholder)
+        };
         let disp = buffer("sgm disparity", px * 4, U::STORAGE | U::COPY_SRC);
         let out = buffer("sgm median", px * 4, U::STORAGE | U::COPY_SRC);
         let parent = buffer("sgm speckle parent", px * 4, U::STORAGE);
@@ -312,7 +380,7 @@ impl SgmGpu {
         let aggregate_bg = bind(
             "sgm aggregate",
             agg,
-            &[&aggregate_u, &images, &codes, &volumes],
+            &[&aggregate_u, &images, &codes, per_direction, sums],
         );
         let select_bg = bind("sgm select", sel, &[&select_u, &volumes, &mask, &disp]);
         let median_bg = bind("sgm median", &self.median, &[&median_u, &disp, &out]);
@@ -365,8 +433,25 @@ impl SgmGpu {
             select_bg,
             median_bg,
             speckle_bg,
-            _keep: vec![codes, volumes, parent, size],
+            volumes,
+            _keep: vec![codes, placeholder, parent, size],
         });
+    }
+
+    /// The kernels' layout for these parameters on this adapter: the aggregated costs per
+    /// direction or summed, as `gpu_volumes` asks and the adapter's buffer limits allow.
+    fn layout(
+        ctx: &GpuContext,
+        p: &SgmParams,
+        w: usize,
+        h: usize,
+        dirs: usize,
+    ) -> Result<Layout, String> {
+        let limits = ctx.device.limits();
+        let max = limits
+            .max_storage_buffer_binding_size
+            .min(limits.max_buffer_size);
+        Layout::choose(p, w, h, dirs, max)
     }
 
     /// Disparity of the left image (px, NaN invalid): the contract of [`crate::sgm::sgm`].
@@ -400,19 +485,8 @@ impl SgmGpu {
                 "the GPU kernels take images up to {MAX_W} px wide, not {w}: use device = \"cpu\""
             ));
         }
-        let layout = Layout::of(p);
         let dirs: &[(isize, isize)] = if p.paths == 8 { &DIRS } else { &DIRS4 };
-        let volume_bytes = (w * h) as u64 * u64::from(layout.dp() * layout.bytes);
-        let limits = ctx.device.limits();
-        let need = volume_bytes * dirs.len() as u64;
-        if need > limits.max_storage_buffer_binding_size || need > limits.max_buffer_size {
-            return Err(format!(
-                "the path costs of {w}x{h}x{} over {} directions ({need} bytes) exceed the GPU's storage buffer limit of {} bytes: use device = \"cpu\" or fewer disparities",
-                p.max_disparity,
-                dirs.len(),
-                limits.max_storage_buffer_binding_size
-            ));
-        }
+        let layout = Self::layout(ctx, p, w, h, dirs.len())?;
         self.pipelines(ctx, layout, dirs.len() as u32)?;
         self.frame(ctx, w, h, dirs.len(), layout);
         let (agg, sel) = &self.specialised[&(layout, dirs.len() as u32)];
@@ -450,6 +524,8 @@ impl SgmGpu {
         }
         f.upload.unmap();
         let right_words = image_words as u32;
+        // Words of one direction's volume (the aggregation's per-direction layout).
+        let volume_words = ((w * h) as u64 * u64::from(layout.dp() * layout.bytes) / 4) as u32;
         q.write_buffer(
             &f.census_u,
             0,
@@ -476,7 +552,7 @@ impl SgmGpu {
             u32::from(p.unknown_cost()),
             dirs.len() as u32,
             0, // groups_x, below
-            (volume_bytes / 4) as u32,
+            volume_words,
             right_words,
         ];
         let mut total_groups = 0u32;
@@ -495,6 +571,8 @@ impl SgmGpu {
         let groups_x = total_groups.min(max_x);
         agg_params[9] = groups_x;
         q.write_buffer(&f.aggregate_u, 0, words(&agg_params));
+        let (sel_bytes, sel_dirs) = layout.selected(dirs.len() as u32);
+        let sel_words = ((w * h) as u64 * u64::from(layout.dp() * sel_bytes) / 4) as u32;
         q.write_buffer(
             &f.select_u,
             0,
@@ -507,9 +585,9 @@ impl SgmGpu {
                 u32::from(p.subpixel),
                 u32::from(p.lr_check),
                 p.lr_max_diff.to_bits(),
-                dirs.len() as u32,
+                sel_dirs,
                 layout.dp(),
-                (volume_bytes / 4) as u32,
+                sel_words,
                 u32::from(valid.is_some()),
             ]),
         );
@@ -564,6 +642,9 @@ impl SgmGpu {
         enc.copy_buffer_to_buffer(&f.upload, 0, &f.images, 0, 2 * plane as u64);
         if valid.is_some() {
             enc.copy_buffer_to_buffer(&f.upload, 2 * plane as u64, &f.mask, 0, plane as u64);
+        }
+        if layout.summed {
+            enc.clear_buffer(&f.volumes, 0, None);
         }
         for (k, jobs) in stages.iter().enumerate() {
             if jobs.is_empty() {
@@ -665,6 +746,7 @@ impl SgmGpu {
             timing.speckle_ms,
         ] = stage_ms;
         timing.readback_ms = (after_submit - kernels).max(0.0);
+        timing.summed_volumes = layout.summed;
         timing.total_ms = t_all.elapsed().as_secs_f64() * 1e3;
         Ok((d, timing))
     }
@@ -687,6 +769,48 @@ mod tests {
         assert!(sel.contains("const DIRS: u32 = 4u;"));
         let err = specialise(SELECT_WGSL, &[("PER", 4)]).unwrap_err();
         assert!(err.contains("PER"), "{err}");
+    }
+
+    #[test]
+    fn the_costs_are_summed_only_where_a_volume_per_direction_does_not_fit() {
+        let p = SgmParams {
+            max_disparity: 128,
+            ..SgmParams::default()
+        };
+        // 640x480, 128 disparities, 8 paths: 315 MB per direction, 79 MB summed.
+        let per_direction = 640 * 480 * 128 * 8;
+        let summed = 640 * 480 * 128 * 2;
+        let auto = |max: u64| Layout::choose(&p, 640, 480, 8, max);
+        assert!(!auto(per_direction).unwrap().summed, "fits: per direction");
+        assert!(
+            auto(per_direction - 1).unwrap().summed,
+            "Mesa's 128 MiB: summed"
+        );
+        let err = auto(summed - 1).unwrap_err();
+        assert!(err.contains("even summed"), "{err}");
+        let forced = |v: GpuVolumes, max: u64| {
+            Layout::choose(
+                &SgmParams {
+                    gpu_volumes: v,
+                    ..p
+                },
+                640,
+                480,
+                8,
+                max,
+            )
+        };
+        assert!(forced(GpuVolumes::Summed, u64::MAX).unwrap().summed);
+        let err = forced(GpuVolumes::PerDirection, per_direction - 1).unwrap_err();
+        assert!(err.contains("gpu_volumes"), "{err}");
+        // u16 costs take two bytes per direction; the sums stay two bytes.
+        let wide = SgmParams { p2: 1000, ..p };
+        let l = Layout::choose(&wide, 640, 480, 8, u64::MAX).unwrap();
+        assert_eq!(l.volumes_bytes(640, 480, 8), 2 * per_direction);
+        assert_eq!(
+            Layout { summed: true, ..l }.volumes_bytes(640, 480, 8),
+            summed
+        );
     }
 
     #[test]

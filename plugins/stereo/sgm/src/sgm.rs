@@ -70,6 +70,35 @@ pub struct SgmParams {
     /// adapter) or "auto" (the GPU when an adapter exists). The library function [`sgm`] is
     /// the CPU path; [`crate::gpu::SgmGpu`] the GPU one.
     pub device: misslam_framework::gpu::Device,
+    /// How the GPU kernels keep the aggregated costs: "per_direction" (a volume of L per
+    /// direction, summed by the selection; the layout timed on an H100), "summed" (the directions add
+    /// their L into one volume of sums by atomic adds: a quarter of the memory with eight
+    /// paths, for adapters whose storage buffers cannot hold a volume per direction), or "auto"
+    /// (per direction when it fits the adapter's limits, else summed). The output is the same.
+    pub gpu_volumes: GpuVolumes,
+}
+
+/// Layout of the GPU kernels' aggregated costs (see [`SgmParams::gpu_volumes`]).
+#[derive(
+    Clone,
+    Copy,
+    Debug,
+    Default,
+    PartialEq,
+    Eq,
+    serde::Serialize,
+    serde::Deserialize,
+    schemars::JsonSchema,
+)]
+#[serde(rename_all = "snake_case")]
+pub enum GpuVolumes {
+    /// Per direction when that fits the adapter's limits, else summed.
+    #[default]
+    Auto,
+    /// A volume of L per direction.
+    PerDirection,
+    /// One volume of sums.
+    Summed,
 }
 
 impl Default for SgmParams {
@@ -91,6 +120,7 @@ impl Default for SgmParams {
             speckle_window: 100,
             speckle_range: 2.0,
             device: misslam_framework::gpu::Device::Cpu,
+            gpu_volumes: GpuVolumes::Auto,
         }
     }
 }
