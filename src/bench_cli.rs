@@ -82,6 +82,9 @@ pub(crate) enum BenchCommand {
         /// Aggregation paths, 4 or 8.
         #[arg(long, default_value_t = 8)]
         paths: u32,
+        /// Layout of the path costs: auto, per_direction or summed (`depth.sgm`'s `gpu_volumes`).
+        #[arg(long, default_value = "auto", value_parser = parse_volumes)]
+        volumes: misslam_depth_sgm::sgm::GpuVolumes,
         /// Timed runs (medians are reported).
         #[arg(long, default_value_t = 50)]
         repeat: usize,
@@ -291,12 +294,14 @@ pub(crate) fn run(which: BenchCommand) -> anyhow::Result<()> {
             height,
             disparities,
             paths,
+            volumes,
             repeat,
             out,
         } => {
             let p = misslam_depth_sgm::sgm::SgmParams {
                 max_disparity: disparities,
                 paths,
+                gpu_volumes: volumes,
                 ..Default::default()
             };
             let pair = left.as_deref().zip(right.as_deref());
@@ -454,4 +459,10 @@ pub(crate) fn run(which: BenchCommand) -> anyhow::Result<()> {
             Ok(())
         }
     }
+}
+
+/// `--volumes` of `bench sgm-gpu`: the names `depth.sgm`'s `gpu_volumes` takes.
+fn parse_volumes(s: &str) -> Result<misslam_depth_sgm::sgm::GpuVolumes, String> {
+    serde_json::from_value(serde_json::Value::String(s.to_owned()))
+        .map_err(|_| format!("`{s}`: expected auto, per_direction or summed"))
 }
