@@ -466,3 +466,17 @@ fn parse_volumes(s: &str) -> Result<misslam_depth_sgm::sgm::GpuVolumes, String> 
     serde_json::from_value(serde_json::Value::String(s.to_owned()))
         .map_err(|_| format!("`{s}`: expected auto, per_direction or summed"))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::parse_volumes;
+    use misslam_depth_sgm::sgm::GpuVolumes;
+
+    #[test]
+    fn volumes_take_the_parameter_names() {
+        assert_eq!(parse_volumes("summed"), Ok(GpuVolumes::Summed));
+        assert_eq!(parse_volumes("per_direction"), Ok(GpuVolumes::PerDirection));
+        assert_eq!(parse_volumes("auto"), Ok(GpuVolumes::Auto));
+        assert!(parse_volumes("both").unwrap_err().contains("`both`"));
+    }
+}
