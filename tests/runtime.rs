@@ -87,6 +87,8 @@ struct Step {
     /// The frames of the holding calls now inside `process`, and whether each has met another.
     inside: Arc<Mutex<Vec<(u64, bool)>>>,
     evals: usize,
+    /// Calls made on a pipelined level's own threads (named `misslam-level...`).
+    on_level_threads: usize,
 }
 
 impl Node for Step {
@@ -153,11 +155,22 @@ impl Node for Step {
         m.values.insert("value".into(), v.map.data[0] as f64);
         out.put("metrics", m)?;
         self.evals += 1;
+        let thread = std::thread::current();
+        if thread
+            .name()
+            .is_some_and(|n| n.starts_with("misslam-level"))
+        {
+            self.on_level_threads += 1;
+        }
         Ok(Flow::Continue)
     }
 
     fn finish(&mut self, ctx: &mut NodeContext) -> NodeResult<()> {
         ctx.report_eval(&format!("{}.frames", ctx.id), self.evals as f64);
+        ctx.report_eval(
+            &format!("{}.on_level_threads", ctx.id),
+            self.on_level_threads as f64,
+        );
         Ok(())
     }
 }
@@ -189,6 +202,7 @@ fn registry(log: Log) -> Registry {
                 rendezvous: rendezvous.clone(),
                 inside: Arc::clone(&inside),
                 evals: 0,
+                on_level_threads: 0,
             })
         },
     ))
@@ -490,6 +504,14 @@ fn the_pipelined_schedule_overlaps_frames() {
     );
     assert_eq!(report.metrics.frames.processed, 5);
     assert_eq!(log.iter().filter(|e| e.0 == "join").count(), 5);
+    // Each level's work ran on its own pool's threads.
+    for node in ["left", "right", "join"] {
+        assert_eq!(
+            report.metrics.eval[&format!("{node}.on_level_threads")],
+            5.0,
+            "{node}"
+        );
+    }
     let t = &report.metrics.timing_ms;
     assert_eq!(t["_frame"].frames, 5);
     assert_eq!(t["_interval"].frames, 4, "between 5 completed frames");
@@ -503,6 +525,7 @@ fn the_pipelined_schedule_overlaps_frames() {
         .map(|s| (s.frame, s.node.as_str()))
         .collect();
     assert_eq!(skipped, [(2, "join"), (3, "left")]);
+    assert_eq!(serial.metrics.eval["right.on_level_threads"], 0.0);
 }
 
 #[test]
