@@ -29,6 +29,14 @@ fn run(sets: &[&str], name: &str) -> std::collections::BTreeMap<String, f64> {
     ] {
         assert!(t.contains_key(&format!("fusion.{stage}")), "fusion.{stage}");
     }
+    // And the post-processing's.
+    for stage in ["masks", "smooth", "maps"] {
+        assert_eq!(
+            t[&format!("post.{stage}")].frames,
+            t["post"].frames,
+            "post.{stage}"
+        );
+    }
     report.metrics.eval
 }
 

@@ -130,6 +130,9 @@ pub struct Cleaned {
     pub border: usize,
     /// Pixels invalidated by the specular mask.
     pub specular: usize,
+    /// Milliseconds of each step: `masks` (range limits, border and specular masks), `smooth`
+    /// (the bilateral filter) and `maps` (vertex and normal maps).
+    pub stages_ms: [(&'static str, f64); 3],
 }
 
 /// Runs the whole chain on depth (mm) with an optional pair for the masks.
@@ -146,6 +149,16 @@ pub fn clean(
             depth.len()
         ));
     }
+    let t = std::time::Instant::now();
+    let mut lap = {
+        let mut last = t;
+        move || {
+            let now = std::time::Instant::now();
+            let ms = (now - last).as_secs_f64() * 1e3;
+            last = now;
+            ms
+        }
+    };
     let out_of_range = maps::limit_range(&mut depth, p.min_depth_mm, p.max_depth_mm);
     let (mut border, mut specular) = (0, 0);
     if let Some(pair) = pair {
@@ -198,6 +211,7 @@ pub fn clean(
             }
         }
     }
+    let masks_ms = lap();
     if p.smoothing == Smoothing::Bilateral {
         depth = maps::bilateral(
             &depth,
@@ -208,6 +222,7 @@ pub fn clean(
             p.smooth_sigma_mm,
         );
     }
+    let smooth_ms = lap();
     let k = Pinhole {
         width: w,
         height: h,
@@ -231,6 +246,7 @@ pub fn clean(
         out_of_range,
         border,
         specular,
+        stages_ms: [("masks", masks_ms), ("smooth", smooth_ms), ("maps", lap())],
     })
 }
 
@@ -242,7 +258,7 @@ pub struct PostprocessNode {
 impl Node for PostprocessNode {
     fn process(
         &mut self,
-        _: &mut NodeContext,
+        ctx: &mut NodeContext,
         _: FrameInfo,
         inputs: &Inputs,
         outputs: &mut Outputs,
@@ -267,6 +283,9 @@ impl Node for PostprocessNode {
         };
         let c =
             clean(depth, &calib, pair.map(|p| p.as_ref()), &self.params).map_err(NodeError::msg)?;
+        for (stage, ms) in c.stages_ms {
+            ctx.report_stage_ms(stage, ms);
+        }
         let n = c.depth.len().max(1) as f64;
         let valid = c.depth.par_iter().filter(|v| v.is_finite()).count() as f64;
         let mut m = Metrics::default();

@@ -308,7 +308,10 @@ where
 
 /// Lifts depth to camera-frame vertices `Z K^-1 [u v 1]^T` and normals. A normal is the cross
 /// product of central differences, turned towards the camera; it is NaN when a neighbour is
-/// invalid or a depth step to a neighbour exceeds `max_step_mm` (an occlusion edge).
+/// invalid or a depth step to a neighbour exceeds `max_step_mm` (an occlusion edge). Row by row,
+/// with `(u - cx) / fx` from a table per column: the arithmetic of the per-pixel definition (the
+/// test's reference), without a division per pixel. A `depth` shorter than `k`'s pixels leaves
+/// the missing ones NaN (callers check the size, as [`crate::clean`] does).
 pub fn vertex_normal_maps_into(
     depth: &[f32],
     k: &Pinhole,
@@ -318,41 +321,51 @@ pub fn vertex_normal_maps_into(
 ) {
     let (w, h) = (k.width, k.height);
     let nan = [f32::NAN; 3];
-    (0..w * h)
-        .into_par_iter()
-        .map(|i| {
-            let z = depth[i];
-            if !(z.is_finite() && z > 0.0) {
-                return nan;
+    // Zeroed allocations are mapped lazily: the rows below, written in parallel, fault their
+    // pages in parallel (a serial fill first would touch every page on one thread).
+    *vertices = vec![[0.0; 3]; w * h];
+    *normals = vec![[0.0; 3]; w * h];
+    if w == 0 || h == 0 {
+        return;
+    }
+    debug_assert_eq!(depth.len(), w * h, "depth and calibration disagree");
+    let xs: Vec<f64> = (0..w).map(|u| (u as f64 - k.cx) / k.fx).collect();
+    vertices
+        .par_chunks_mut(w)
+        .zip(depth.par_chunks(w))
+        .enumerate()
+        .for_each(|(v, (row, zs))| {
+            let ys = (v as f64 - k.cy) / k.fy;
+            row.fill(nan);
+            for ((p, &z), &xs) in row.iter_mut().zip(zs).zip(&xs) {
+                if z.is_finite() && z > 0.0 {
+                    *p = [(xs * z as f64) as f32, (ys * z as f64) as f32, z];
+                }
             }
-            let (u, v) = ((i % w) as f64, (i / w) as f64);
-            [
-                ((u - k.cx) / k.fx * z as f64) as f32,
-                ((v - k.cy) / k.fy * z as f64) as f32,
-                z,
-            ]
-        })
-        .collect_into_vec(vertices);
+        });
     let vertices = &*vertices;
-    (0..w * h)
-        .into_par_iter()
-        .map(|i| {
-            let (x, y) = (i % w, i / w);
-            if x == 0 || y == 0 || x + 1 >= w || y + 1 >= h || !vertices[i][2].is_finite() {
-                return nan;
+    normals.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        row.fill(nan);
+        if y == 0 || y + 1 >= h || w < 3 {
+            return;
+        }
+        let (up, mid, down) = (
+            &vertices[(y - 1) * w..y * w],
+            &vertices[y * w..(y + 1) * w],
+            &vertices[(y + 1) * w..(y + 2) * w],
+        );
+        for x in 1..w - 1 {
+            let p = mid[x];
+            let z = p[2];
+            if !z.is_finite() {
+                continue;
             }
-            let (l, r, u, d) = (
-                vertices[i - 1],
-                vertices[i + 1],
-                vertices[i - w],
-                vertices[i + w],
-            );
-            let z = vertices[i][2];
+            let (l, r, u, d) = (mid[x - 1], mid[x + 1], up[x], down[x]);
             if [l, r, u, d]
                 .iter()
-                .any(|p| !p[2].is_finite() || (p[2] - z).abs() > max_step_mm)
+                .any(|q| !q[2].is_finite() || (q[2] - z).abs() > max_step_mm)
             {
-                return nan;
+                continue;
             }
             let a = [r[0] - l[0], r[1] - l[1], r[2] - l[2]];
             let b = [d[0] - u[0], d[1] - u[1], d[2] - u[2]];
@@ -363,17 +376,16 @@ pub fn vertex_normal_maps_into(
             ];
             let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
             if len.is_nan() || len <= 0.0 {
-                return nan;
+                continue;
             }
-            let p = vertices[i];
             let s = if n[0] * p[0] + n[1] * p[1] + n[2] * p[2] > 0.0 {
                 -1.0 / len
             } else {
                 1.0 / len
             };
-            n.map(|c| c * s)
-        })
-        .collect_into_vec(normals);
+            row[x] = n.map(|c| c * s);
+        }
+    });
 }
 
 #[cfg(test)]
@@ -534,6 +546,116 @@ mod tests {
             .iter()
             .enumerate()
             .all(|(i, v)| i == 5 * w + 5 || v.is_finite()));
+    }
+
+    /// The per-pixel definition of [`vertex_normal_maps_into`].
+    fn vertex_normal_maps_per_pixel(
+        depth: &[f32],
+        k: &Pinhole,
+        max_step_mm: f32,
+    ) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
+        let (w, h) = (k.width, k.height);
+        let nan = [f32::NAN; 3];
+        let vertices: Vec<[f32; 3]> = (0..w * h)
+            .map(|i| {
+                let z = depth[i];
+                if !(z.is_finite() && z > 0.0) {
+                    return nan;
+                }
+                let (u, v) = ((i % w) as f64, (i / w) as f64);
+                [
+                    ((u - k.cx) / k.fx * z as f64) as f32,
+                    ((v - k.cy) / k.fy * z as f64) as f32,
+                    z,
+                ]
+            })
+            .collect();
+        let normals = (0..w * h)
+            .map(|i| {
+                let (x, y) = (i % w, i / w);
+                if x == 0 || y == 0 || x + 1 >= w || y + 1 >= h || !vertices[i][2].is_finite() {
+                    return nan;
+                }
+                let (l, r, u, d) = (
+                    vertices[i - 1],
+                    vertices[i + 1],
+                    vertices[i - w],
+                    vertices[i + w],
+                );
+                let z = vertices[i][2];
+                if [l, r, u, d]
+                    .iter()
+                    .any(|p| !p[2].is_finite() || (p[2] - z).abs() > max_step_mm)
+                {
+                    return nan;
+                }
+                let a = [r[0] - l[0], r[1] - l[1], r[2] - l[2]];
+                let b = [d[0] - u[0], d[1] - u[1], d[2] - u[2]];
+                let n = [
+                    a[1] * b[2] - a[2] * b[1],
+                    a[2] * b[0] - a[0] * b[2],
+                    a[0] * b[1] - a[1] * b[0],
+                ];
+                let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+                if len.is_nan() || len <= 0.0 {
+                    return nan;
+                }
+                let p = vertices[i];
+                let s = if n[0] * p[0] + n[1] * p[1] + n[2] * p[2] > 0.0 {
+                    -1.0 / len
+                } else {
+                    1.0 / len
+                };
+                n.map(|c| c * s)
+            })
+            .collect();
+        (vertices, normals)
+    }
+
+    #[test]
+    fn maps_equal_the_per_pixel_definition() {
+        // A bumpy surface with holes, non-positive depths and occlusion steps, on odd sizes
+        // (and the degenerate ones).
+        for (w, h) in [(37usize, 23usize), (2, 5), (5, 2), (1, 1)] {
+            let k = pinhole(w, h);
+            let mut s = 0x2545f4914f6cdd1du64;
+            let mut rnd = || {
+                s ^= s << 13;
+                s ^= s >> 7;
+                s ^= s << 17;
+                (s >> 11) as f64 / (1u64 << 53) as f64
+            };
+            let depth: Vec<f32> = (0..w * h)
+                .map(|i| {
+                    let r = rnd();
+                    let (x, y) = ((i % w) as f64, (i / w) as f64);
+                    if r < 0.05 {
+                        f32::NAN
+                    } else if r < 0.07 {
+                        -1.0
+                    } else {
+                        (80.0
+                            + 3.0 * (0.3 * x).sin() * (0.2 * y).cos()
+                            + 10.0 * f64::from(x > 20.0)
+                            + rnd()) as f32
+                    }
+                })
+                .collect();
+            let (want_v, want_n) = vertex_normal_maps_per_pixel(&depth, &k, 3.0);
+            let (mut v, mut n) = (vec![[1.0; 3]; 3], Vec::new());
+            vertex_normal_maps_into(&depth, &k, 3.0, &mut v, &mut n);
+            let bits = |m: &[[f32; 3]]| -> Vec<[u32; 3]> {
+                m.iter()
+                    .map(|p| p.map(|c| if c.is_nan() { u32::MAX } else { c.to_bits() }))
+                    .collect()
+            };
+            assert_eq!(bits(&v), bits(&want_v), "{w}x{h} vertices");
+            assert_eq!(bits(&n), bits(&want_n), "{w}x{h} normals");
+            if w > 20 {
+                let normals = n.iter().filter(|q| q[0].is_finite()).count();
+                assert!(normals > w * h / 2, "{w}x{h}: {normals} normals");
+            }
+        }
     }
 
     #[test]
