@@ -13,6 +13,7 @@ use misslam_framework::{
     StereoCalib, StereoFrame, TypedPlugin, VertexMap,
 };
 use rayon::prelude::*;
+use std::sync::Arc;
 
 pub use maps::Pinhole;
 
@@ -137,10 +138,22 @@ pub struct Cleaned {
 
 /// Runs the whole chain on depth (mm) with an optional pair for the masks.
 pub fn clean(
+    depth: Vec<f32>,
+    calib: &StereoCalib,
+    pair: Option<&StereoFrame>,
+    p: &Params,
+) -> Result<Cleaned, String> {
+    clean_into(depth, calib, pair, p, (Vec::new(), Vec::new()))
+}
+
+/// [`clean`], writing the vertex and normal maps into `buffers` (reused when they have the
+/// image's size, so a caller that gets them back saves the allocations).
+pub fn clean_into(
     mut depth: Vec<f32>,
     calib: &StereoCalib,
     pair: Option<&StereoFrame>,
     p: &Params,
+    buffers: (Vec<[f32; 3]>, Vec<[f32; 3]>),
 ) -> Result<Cleaned, String> {
     let (w, h) = (calib.width as usize, calib.height as usize);
     if depth.len() != w * h {
@@ -231,7 +244,7 @@ pub fn clean(
         cx: calib.cx,
         cy: calib.cy,
     };
-    let (mut vertices, mut normals) = (Vec::new(), Vec::new());
+    let (mut vertices, mut normals) = buffers;
     maps::vertex_normal_maps_into(
         &depth,
         &k,
@@ -253,6 +266,22 @@ pub fn clean(
 /// The node.
 pub struct PostprocessNode {
     params: Params,
+    /// The last frame's vertex and normal maps: once no other holder is left (the frame is
+    /// done), their buffers are taken back for the next frame's maps.
+    last: Option<(Arc<VertexMap>, Arc<NormalMap>)>,
+}
+
+impl PostprocessNode {
+    /// The last maps' buffers when nothing else holds them, else empty ones.
+    fn recycled(&mut self) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
+        match self.last.take() {
+            Some((v, n)) => (
+                Arc::try_unwrap(v).map(|v| v.points).unwrap_or_default(),
+                Arc::try_unwrap(n).map(|n| n.normals).unwrap_or_default(),
+            ),
+            None => (Vec::new(), Vec::new()),
+        }
+    }
 }
 
 impl Node for PostprocessNode {
@@ -281,8 +310,15 @@ impl Node for PostprocessNode {
                 "neither `disparity` nor `depth` received anything on this frame",
             ));
         };
-        let c =
-            clean(depth, &calib, pair.map(|p| p.as_ref()), &self.params).map_err(NodeError::msg)?;
+        let buffers = self.recycled();
+        let c = clean_into(
+            depth,
+            &calib,
+            pair.map(|p| p.as_ref()),
+            &self.params,
+            buffers,
+        )
+        .map_err(NodeError::msg)?;
         for (stage, ms) in c.stages_ms {
             ctx.report_stage_ms(stage, ms);
         }
@@ -313,22 +349,19 @@ impl Node for PostprocessNode {
                 calib,
             },
         )?;
-        outputs.put(
-            "vertices",
-            VertexMap {
-                width: w,
-                height: h,
-                points: c.vertices,
-            },
-        )?;
-        outputs.put(
-            "normals",
-            NormalMap {
-                width: w,
-                height: h,
-                normals: c.normals,
-            },
-        )?;
+        let vertices = Arc::new(VertexMap {
+            width: w,
+            height: h,
+            points: c.vertices,
+        });
+        let normals = Arc::new(NormalMap {
+            width: w,
+            height: h,
+            normals: c.normals,
+        });
+        outputs.put_arc("vertices", Arc::clone(&vertices))?;
+        outputs.put_arc("normals", Arc::clone(&normals))?;
+        self.last = Some((vertices, normals));
         outputs.put("metrics", m)?;
         Ok(Flow::Continue)
     }
@@ -341,7 +374,7 @@ pub fn build(params: Params, _: &BuildContext) -> Result<PostprocessNode, BuildE
         path: String::new(),
         message: m,
     })?;
-    Ok(PostprocessNode { params })
+    Ok(PostprocessNode { params, last: None })
 }
 
 /// Registers `depth.postprocess`.
@@ -420,5 +453,40 @@ mod tests {
         .unwrap();
         assert!(err.contains("120 bytes") && err.contains("8x6"), "{err}");
         assert!(clean(depth, &calib, Some(&pair(full.clone())), &Params::default()).is_ok());
+    }
+
+    #[test]
+    fn map_buffers_come_back_only_when_nothing_else_holds_them() {
+        let mut node = PostprocessNode {
+            params: Params::default(),
+            last: None,
+        };
+        let maps = || {
+            (
+                Arc::new(VertexMap {
+                    width: 2,
+                    height: 1,
+                    points: vec![[1.0; 3]; 2],
+                }),
+                Arc::new(NormalMap {
+                    width: 2,
+                    height: 1,
+                    normals: vec![[0.0, 0.0, -1.0]; 2],
+                }),
+            )
+        };
+        // A consumer still holds the last maps: their buffers are not taken.
+        let (v, n) = maps();
+        node.last = Some((Arc::clone(&v), Arc::clone(&n)));
+        let (bv, bn) = node.recycled();
+        assert!(bv.is_empty() && bn.is_empty());
+        assert_eq!(v.points, vec![[1.0; 3]; 2], "the held maps are untouched");
+        // Once the frame is done, the next frame writes into the same memory.
+        let (v, n) = maps();
+        let (pv, pn) = (v.points.as_ptr(), n.normals.as_ptr());
+        node.last = Some((v, n));
+        let (bv, bn) = node.recycled();
+        assert_eq!((bv.as_ptr(), bn.as_ptr()), (pv, pn));
+        assert!(node.last.is_none());
     }
 }

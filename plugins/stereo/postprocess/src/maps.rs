@@ -321,10 +321,15 @@ pub fn vertex_normal_maps_into(
 ) {
     let (w, h) = (k.width, k.height);
     let nan = [f32::NAN; 3];
-    // Zeroed allocations are mapped lazily: the rows below, written in parallel, fault their
-    // pages in parallel (a serial fill first would touch every page on one thread).
-    *vertices = vec![[0.0; 3]; w * h];
-    *normals = vec![[0.0; 3]; w * h];
+    // Every entry is written below, row by row in parallel. Buffers of the right size are
+    // reused as they are; others are replaced by zeroed allocations, which are mapped lazily, so
+    // their pages are faulted in by the parallel rows (a serial fill would touch every page on
+    // one thread).
+    for m in [&mut *vertices, &mut *normals] {
+        if m.len() != w * h {
+            *m = vec![[0.0; 3]; w * h];
+        }
+    }
     if w == 0 || h == 0 {
         return;
     }
@@ -651,6 +656,11 @@ mod tests {
             };
             assert_eq!(bits(&v), bits(&want_v), "{w}x{h} vertices");
             assert_eq!(bits(&n), bits(&want_n), "{w}x{h} normals");
+            // Buffers reused at their size hold nothing of their last contents.
+            v.iter_mut().chain(n.iter_mut()).for_each(|p| *p = [7.0; 3]);
+            vertex_normal_maps_into(&depth, &k, 3.0, &mut v, &mut n);
+            assert_eq!(bits(&v), bits(&want_v), "{w}x{h} vertices, reused");
+            assert_eq!(bits(&n), bits(&want_n), "{w}x{h} normals, reused");
             if w > 20 {
                 let normals = n.iter().filter(|q| q[0].is_finite()).count();
                 assert!(normals > w * h / 2, "{w}x{h}: {normals} normals");
