@@ -190,21 +190,14 @@ pub fn clean_into(
             ));
         }
         if p.mask_border {
-            let invalid: Vec<bool> = match pair.left_mask.as_ref().filter(|m| m.data.len() == w * h)
-            {
-                Some(m) => m.data.iter().map(|&v| v == 0).collect(),
-                None => img
-                    .data
-                    .chunks_exact(c)
-                    .map(|px| *px.iter().max().unwrap_or(&0) < p.black_level)
-                    .collect(),
+            // The pair's left mask when it has one of the image's size, else the black level.
+            let mask = pair.left_mask.as_ref().filter(|m| m.data.len() == w * h);
+            border = match mask {
+                Some(m) => invalidate(&mut depth, &m.data, 1, |v| v[0] == 0),
+                None => invalidate(&mut depth, &img.data, c, |px| {
+                    *px.iter().max().unwrap_or(&0) < p.black_level
+                }),
             };
-            for (z, bad) in depth.iter_mut().zip(invalid) {
-                if bad && z.is_finite() {
-                    *z = f32::NAN;
-                    border += 1;
-                }
-            }
         }
         if p.mask_specular {
             let m = maps::specular_mask(
@@ -216,12 +209,7 @@ pub fn clean_into(
                 p.specular_max_saturation,
                 p.specular_dilate_px,
             );
-            for (z, &bad) in depth.iter_mut().zip(&m) {
-                if bad != 0 && z.is_finite() {
-                    *z = f32::NAN;
-                    specular += 1;
-                }
-            }
+            specular = invalidate(&mut depth, &m, 1, |v| v[0] != 0);
         }
     }
     let masks_ms = lap();
@@ -261,6 +249,31 @@ pub fn clean_into(
         specular,
         stages_ms: [("masks", masks_ms), ("smooth", smooth_ms), ("maps", lap())],
     })
+}
+
+/// Sets to NaN each valid depth whose pixel (`per_pixel` bytes of `data`) is `bad`, in parallel,
+/// and returns how many it set.
+fn invalidate(
+    depth: &mut [f32],
+    data: &[u8],
+    per_pixel: usize,
+    bad: impl Fn(&[u8]) -> bool + Sync,
+) -> usize {
+    const CHUNK: usize = 4096;
+    depth
+        .par_chunks_mut(CHUNK)
+        .zip(data.par_chunks(CHUNK * per_pixel))
+        .map(|(zs, px)| {
+            let mut n = 0;
+            for (z, v) in zs.iter_mut().zip(px.chunks_exact(per_pixel)) {
+                if z.is_finite() && bad(v) {
+                    *z = f32::NAN;
+                    n += 1;
+                }
+            }
+            n
+        })
+        .sum()
 }
 
 /// The node.
@@ -453,6 +466,66 @@ mod tests {
         .unwrap();
         assert!(err.contains("120 bytes") && err.contains("8x6"), "{err}");
         assert!(clean(depth, &calib, Some(&pair(full.clone())), &Params::default()).is_ok());
+    }
+
+    #[test]
+    fn masks_invalidate_exactly_their_pixels_and_count_them() {
+        // 70x70 (more pixels than one parallel chunk): a black band (the border), one white
+        // pixel (specular, dilated by 1 px), a NaN depth inside the band (not counted).
+        let (w, h) = (70usize, 70usize);
+        let calib = StereoCalib {
+            width: w as u32,
+            height: h as u32,
+            fx: 100.0,
+            fy: 100.0,
+            cx: 35.0,
+            cy: 35.0,
+            cx_right: 35.0,
+            baseline_mm: 5.0,
+        };
+        let mut img = vec![100u8; w * h * 3];
+        for y in 0..h {
+            for x in 0..3 {
+                img[3 * (y * w + x)..3 * (y * w + x) + 3].fill(0);
+            }
+        }
+        let white = 40 * w + 40;
+        img[3 * white..3 * white + 3].fill(255);
+        let mut depth = vec![60.0f32; w * h];
+        depth[10 * w + 1] = f32::NAN;
+        let pair = |left_mask: Option<misslam_framework::Mask>| StereoFrame {
+            index: 0,
+            timestamp: 0.0,
+            left: Arc::new(Image::new(w as u32, h as u32, 3, img.clone()).unwrap()),
+            right: Arc::new(Image::new(w as u32, h as u32, 3, img.clone()).unwrap()),
+            calib,
+            left_mask,
+            right_mask: None,
+        };
+        let p = Params {
+            specular_dilate_px: 1,
+            smoothing: Smoothing::None,
+            ..Params::default()
+        };
+        let c = clean(depth.clone(), &calib, Some(&pair(None)), &p).unwrap();
+        assert_eq!(c.border, 3 * h - 1, "the band, less the NaN pixel");
+        assert_eq!(c.specular, 9, "the white pixel and its 8 neighbours");
+        for (i, z) in c.depth.iter().enumerate() {
+            let (x, y) = (i % w, i / w);
+            let masked = x < 3 || (x.abs_diff(40) <= 1 && y.abs_diff(40) <= 1);
+            assert_eq!(z.is_nan(), masked, "({x}, {y})");
+        }
+        // A left mask replaces the black level: only its zeros are border.
+        let mut mask = vec![255u8; w * h];
+        mask[5 * w..6 * w].fill(0);
+        let m = misslam_framework::Mask {
+            width: w as u32,
+            height: h as u32,
+            data: mask,
+        };
+        let c = clean(depth, &calib, Some(&pair(Some(m))), &p).unwrap();
+        assert_eq!(c.border, w);
+        assert!(c.depth[5 * w + 1].is_nan() && c.depth[20 * w + 1].is_finite());
     }
 
     #[test]
