@@ -160,18 +160,22 @@ pub fn point_triangle_dist2(p: V3, a: V3, b: V3, c: V3) -> f32 {
     dot(d, d)
 }
 
-/// Triangles bucketed in a uniform grid for nearest-triangle queries.
-pub struct SurfaceIndex<'a> {
-    mesh: &'a Mesh,
+/// Triangles bucketed in a uniform grid for nearest-triangle queries: per cell a range of
+/// `items` (compressed rows), and the triangles' corners stored with them.
+pub struct SurfaceIndex {
     origin: V3,
     cell: f32,
     dims: [usize; 3],
-    cells: Vec<Vec<u32>>,
+    /// Cell c's triangles are `items[start[c]..start[c + 1]]`.
+    start: Vec<u32>,
+    items: Vec<u32>,
+    /// Each triangle's corners.
+    corners: Vec<[V3; 3]>,
 }
 
-impl<'a> SurfaceIndex<'a> {
+impl SurfaceIndex {
     /// Indexes `mesh` (cell size: twice the mean edge length).
-    pub fn new(mesh: &'a Mesh) -> Result<Self, String> {
+    pub fn new(mesh: &Mesh) -> Result<Self, String> {
         if mesh.triangles.is_empty() {
             return Err("the ground-truth mesh has no triangles".into());
         }
@@ -200,29 +204,55 @@ impl<'a> SurfaceIndex<'a> {
             .map(|k| (hi[k] - lo[k]) / dims[k] as f32)
             .fold(cell, f32::max)
             .max(1e-3);
-        let mut cells = vec![Vec::new(); dims[0] * dims[1] * dims[2]];
         let index = |p: f32, k: usize| (((p - lo[k]) / cell) as usize).min(dims[k] - 1);
-        for (ti, t) in mesh.triangles.iter().enumerate() {
-            let v = t.map(|i| mesh.vertices[i as usize]);
-            let r = [0, 1, 2].map(|k| {
-                let a = v.iter().map(|p| p[k]).fold(f32::INFINITY, f32::min);
-                let b = v.iter().map(|p| p[k]).fold(f32::NEG_INFINITY, f32::max);
-                (index(a, k), index(b, k))
-            });
-            for z in r[2].0..=r[2].1 {
-                for y in r[1].0..=r[1].1 {
-                    for x in r[0].0..=r[0].1 {
-                        cells[(z * dims[1] + y) * dims[0] + x].push(ti as u32);
-                    }
-                }
+        let corners: Vec<[V3; 3]> = mesh
+            .triangles
+            .par_iter()
+            .map(|t| t.map(|i| mesh.vertices[i as usize]))
+            .collect();
+        // Each triangle's block of cells, then a counting sort into compressed rows (in triangle
+        // order within a cell).
+        let boxes: Vec<[(usize, usize); 3]> = corners
+            .par_iter()
+            .map(|v| {
+                [0, 1, 2].map(|k| {
+                    let a = v.iter().map(|p| p[k]).fold(f32::INFINITY, f32::min);
+                    let b = v.iter().map(|p| p[k]).fold(f32::NEG_INFINITY, f32::max);
+                    (index(a, k), index(b, k))
+                })
+            })
+            .collect();
+        let cells_of = |r: &[(usize, usize); 3]| {
+            let (xs, ys, zs) = (r[0], r[1], r[2]);
+            (zs.0..=zs.1).flat_map(move |z| {
+                (ys.0..=ys.1)
+                    .flat_map(move |y| (xs.0..=xs.1).map(move |x| (z * dims[1] + y) * dims[0] + x))
+            })
+        };
+        let mut start = vec![0u32; dims[0] * dims[1] * dims[2] + 1];
+        for r in &boxes {
+            for c in cells_of(r) {
+                start[c + 1] += 1;
+            }
+        }
+        for c in 1..start.len() {
+            start[c] += start[c - 1];
+        }
+        let mut fill = start.clone();
+        let mut items = vec![0u32; start[start.len() - 1] as usize];
+        for (ti, r) in boxes.iter().enumerate() {
+            for c in cells_of(r) {
+                items[fill[c] as usize] = ti as u32;
+                fill[c] += 1;
             }
         }
         Ok(SurfaceIndex {
-            mesh,
             origin: lo,
             cell,
             dims,
-            cells,
+            start,
+            items,
+            corners,
         })
     }
 
@@ -280,9 +310,10 @@ impl<'a> SurfaceIndex<'a> {
                         if self.cell_dist2(p, [x, y, z]) > best {
                             continue;
                         }
-                        for &ti in &self.cells[(z * self.dims[1] + y) * self.dims[0] + x] {
-                            let t = self.mesh.triangles[ti as usize];
-                            let [a, b, cc] = t.map(|i| self.mesh.vertices[i as usize]);
+                        let c = (z * self.dims[1] + y) * self.dims[0] + x;
+                        let (s, e) = (self.start[c] as usize, self.start[c + 1] as usize);
+                        for &ti in &self.items[s..e] {
+                            let [a, b, cc] = self.corners[ti as usize];
                             best = best.min(point_triangle_dist2(p, a, b, cc));
                         }
                     }
