@@ -888,4 +888,57 @@ mod tests {
             .contains("not finite"));
         assert!(score(&[], &gt).is_err());
     }
+
+    #[test]
+    fn the_index_finds_the_nearest_of_all_triangles() {
+        // A crumpled sheet (random heights on a 25x25 grid, uneven spacing) against brute force,
+        // for points on it, near it, and far outside its box.
+        let mut st = 0x9e3779b97f4a7c15u64;
+        let mut rnd = || {
+            st ^= st << 13;
+            st ^= st >> 7;
+            st ^= st << 17;
+            (st >> 40) as f32 / (1u64 << 24) as f32
+        };
+        let n = 25;
+        let mut vertices = Vec::new();
+        for j in 0..n {
+            for i in 0..n {
+                let (x, y) = (i as f32 * 2.0 + rnd(), j as f32 * 2.0 + rnd());
+                vertices.push([x, y, 100.0 + 6.0 * rnd()]);
+            }
+        }
+        let mut triangles = Vec::new();
+        for j in 0..n - 1 {
+            for i in 0..n - 1 {
+                let a = (j * n + i) as u32;
+                triangles.push([a, a + 1, a + n as u32 + 1]);
+                triangles.push([a, a + n as u32 + 1, a + n as u32]);
+            }
+        }
+        let gt = Mesh {
+            vertices,
+            triangles,
+            ..Default::default()
+        };
+        let index = SurfaceIndex::new(&gt).unwrap();
+        for k in 0..400 {
+            let spread = [2.0, 10.0, 200.0][k % 3];
+            let p = [
+                24.0 + spread * (rnd() - 0.5),
+                24.0 + spread * (rnd() - 0.5),
+                103.0 + spread * (rnd() - 0.5),
+            ];
+            let brute = gt
+                .triangles
+                .iter()
+                .map(|t| {
+                    let [a, b, c] = t.map(|i| gt.vertices[i as usize]);
+                    point_triangle_dist2(p, a, b, c)
+                })
+                .fold(f32::INFINITY, f32::min)
+                .sqrt();
+            assert_eq!(index.distance(p), brute, "{p:?}");
+        }
+    }
 }
