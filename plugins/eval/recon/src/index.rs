@@ -265,27 +265,10 @@ mod tests {
             st ^= st << 17;
             (st >> 40) as f32 / (1u64 << 24) as f32
         };
-        let n = 25;
-        let mut vertices = Vec::new();
-        for j in 0..n {
-            for i in 0..n {
-                let (x, y) = (i as f32 * 2.0 + rnd(), j as f32 * 2.0 + rnd());
-                vertices.push([x, y, 100.0 + 6.0 * rnd()]);
-            }
-        }
-        let mut triangles = Vec::new();
-        for j in 0..n - 1 {
-            for i in 0..n - 1 {
-                let a = (j * n + i) as u32;
-                triangles.push([a, a + 1, a + n as u32 + 1]);
-                triangles.push([a, a + n as u32 + 1, a + n as u32]);
-            }
-        }
-        let gt = Mesh {
-            vertices,
-            triangles,
-            ..Default::default()
-        };
+        let gt = crate::grid_mesh(25, |i, j| {
+            let (x, y) = (i as f32 * 2.0 + rnd(), j as f32 * 2.0 + rnd());
+            [x, y, 100.0 + 6.0 * rnd()]
+        });
         let index = SurfaceIndex::new(&gt).unwrap();
         for k in 0..400 {
             let spread = [2.0, 10.0, 200.0][k % 3];

@@ -393,32 +393,39 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
     ))
 }
 
+/// An n x n grid of vertices `vertex(i, j)`, two triangles per cell (for tests).
+#[cfg(test)]
+pub(crate) fn grid_mesh(n: usize, mut vertex: impl FnMut(usize, usize) -> V3) -> Mesh {
+    let mut vertices = Vec::with_capacity(n * n);
+    for j in 0..n {
+        for i in 0..n {
+            vertices.push(vertex(i, j));
+        }
+    }
+    let mut triangles = Vec::new();
+    for j in 0..n.saturating_sub(1) {
+        for i in 0..n - 1 {
+            let a = (j * n + i) as u32;
+            triangles.push([a, a + 1, a + n as u32 + 1]);
+            triangles.push([a, a + n as u32 + 1, a + n as u32]);
+        }
+    }
+    Mesh {
+        vertices,
+        triangles,
+        ..Default::default()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     /// A 100 x 100 mm square at z = 100, as a 10 x 10 grid of triangle pairs.
     fn plane() -> Mesh {
-        let n = 11;
-        let mut vertices = Vec::new();
-        for j in 0..n {
-            for i in 0..n {
-                vertices.push([i as f32 * 10.0 - 50.0, j as f32 * 10.0 - 50.0, 100.0]);
-            }
-        }
-        let mut triangles = Vec::new();
-        for j in 0..n - 1 {
-            for i in 0..n - 1 {
-                let a = (j * n + i) as u32;
-                triangles.push([a, a + 1, a + n as u32 + 1]);
-                triangles.push([a, a + n as u32 + 1, a + n as u32]);
-            }
-        }
-        Mesh {
-            vertices,
-            triangles,
-            ..Default::default()
-        }
+        grid_mesh(11, |i, j| {
+            [i as f32 * 10.0 - 50.0, j as f32 * 10.0 - 50.0, 100.0]
+        })
     }
 
     #[test]
