@@ -85,6 +85,10 @@ pub(crate) enum BenchCommand {
         /// Layout of the path costs: auto, per_direction or summed (`depth.sgm`'s `gpu_volumes`).
         #[arg(long, default_value = "auto", value_parser = parse_volumes)]
         volumes: misslam_depth_sgm::sgm::GpuVolumes,
+        /// How a path's invocations exchange their costs: auto, subgroup or workgroup
+        /// (`depth.sgm`'s `gpu_exchange`).
+        #[arg(long, default_value = "auto", value_parser = parse_exchange)]
+        exchange: misslam_depth_sgm::sgm::GpuExchange,
         /// Timed runs (medians are reported).
         #[arg(long, default_value_t = 50)]
         repeat: usize,
@@ -295,6 +299,7 @@ pub(crate) fn run(which: BenchCommand) -> anyhow::Result<()> {
             disparities,
             paths,
             volumes,
+            exchange,
             repeat,
             out,
         } => {
@@ -302,6 +307,7 @@ pub(crate) fn run(which: BenchCommand) -> anyhow::Result<()> {
                 max_disparity: disparities,
                 paths,
                 gpu_volumes: volumes,
+                gpu_exchange: exchange,
                 ..Default::default()
             };
             let pair = left.as_deref().zip(right.as_deref());
@@ -321,10 +327,11 @@ pub(crate) fn run(which: BenchCommand) -> anyhow::Result<()> {
                 r.gpu_ms, r.runs, r.gpu_min_ms, r.cpu_threads, r.cpu_ms, r.speedup
             );
             out!(
-                "stages ({}; {}): upload {:.3}, census {:.3}, aggregate {:.3}, select {:.3}, median {:.3}, readback {:.3}, speckles {:.3}, total {:.3} ms",
+                "stages ({}; {}; {}): upload {:.3}, census {:.3}, aggregate {:.3}, select {:.3}, median {:.3}, readback {:.3} (submission {:.3}, host copy {:.3}), speckles {:.3}, total {:.3} ms",
                 if s.gpu_timestamps { "GPU timestamps" } else { "each waited for" },
                 if s.summed_volumes { "costs summed into one volume" } else { "a volume per direction" },
-                s.upload_ms, s.census_ms, s.aggregate_ms, s.select_ms, s.median_ms, s.readback_ms, s.speckle_ms, s.total_ms
+                if s.subgroups { "subgroup exchange" } else { "workgroup exchange" },
+                s.upload_ms, s.census_ms, s.aggregate_ms, s.select_ms, s.median_ms, s.readback_ms, s.submit_ms, s.convert_ms, s.speckle_ms, s.total_ms
             );
             out!(
                 "parity with the CPU: {} pixels differ in validity, max |diff| {:.2e} px; density {:.1} %",
@@ -467,10 +474,16 @@ fn parse_volumes(s: &str) -> Result<misslam_depth_sgm::sgm::GpuVolumes, String> 
         .map_err(|_| format!("`{s}`: expected auto, per_direction or summed"))
 }
 
+/// `--exchange` of `bench sgm-gpu`: the names `depth.sgm`'s `gpu_exchange` takes.
+fn parse_exchange(s: &str) -> Result<misslam_depth_sgm::sgm::GpuExchange, String> {
+    serde_json::from_value(serde_json::Value::String(s.to_owned()))
+        .map_err(|_| format!("`{s}`: expected auto, subgroup or workgroup"))
+}
+
 #[cfg(test)]
 mod tests {
-    use super::parse_volumes;
-    use misslam_depth_sgm::sgm::GpuVolumes;
+    use super::{parse_exchange, parse_volumes};
+    use misslam_depth_sgm::sgm::{GpuExchange, GpuVolumes};
 
     #[test]
     fn volumes_take_the_parameter_names() {
@@ -478,5 +491,9 @@ mod tests {
         assert_eq!(parse_volumes("per_direction"), Ok(GpuVolumes::PerDirection));
         assert_eq!(parse_volumes("auto"), Ok(GpuVolumes::Auto));
         assert!(parse_volumes("both").unwrap_err().contains("`both`"));
+        assert_eq!(parse_exchange("subgroup"), Ok(GpuExchange::Subgroup));
+        assert_eq!(parse_exchange("workgroup"), Ok(GpuExchange::Workgroup));
+        assert_eq!(parse_exchange("auto"), Ok(GpuExchange::Auto));
+        assert!(parse_exchange("warp").unwrap_err().contains("`warp`"));
     }
 }

@@ -127,11 +127,18 @@ fn stereo_scene(w: usize, h: usize, seed: u64) -> (Vec<u8>, Vec<u8>) {
 #[test]
 fn sgm_kernels_match_the_cpu_path() {
     use misslam_depth_sgm::gpu::SgmGpu;
-    use misslam_depth_sgm::sgm::{sgm, GpuVolumes, Scratch, SgmParams};
+    use misslam_depth_sgm::sgm::{sgm, GpuExchange, GpuVolumes, Scratch, SgmParams};
     let Some(ctx) = gpu() else { return };
     let mut kernels = SgmGpu::new(&ctx);
     let cases = [
         ("default (8 paths, census 9x7, 64 d)", SgmParams::default()),
+        (
+            "32 d, 8 paths (a path in 8 subgroup lanes)",
+            SgmParams {
+                max_disparity: 32,
+                ..SgmParams::default()
+            },
+        ),
         (
             "4 paths, adaptive P2, d from -3, 20 d, no sub-pixel",
             SgmParams {
@@ -179,6 +186,7 @@ fn sgm_kernels_match_the_cpu_path() {
             },
         ),
     ];
+    let mut subgroup_runs = 0;
     for (w, h, cases) in [
         (83, 37, &cases[..]),
         (161, 120, &cases[..]),
@@ -217,13 +225,31 @@ fn sgm_kernels_match_the_cpu_path() {
             };
             let (got_summed, t) = kernels.run(&ctx, &left, &right, w, h, m, &summed).unwrap();
             assert!(t.summed_volumes && !timing.summed_volumes, "{name}");
-            assert!(
-                got_summed
-                    .iter()
+            let same = |a: &[f32]| {
+                a.iter()
                     .zip(&got)
-                    .all(|(a, b)| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan())),
+                    .all(|(a, b)| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan()))
+            };
+            assert!(
+                same(&got_summed),
                 "{name}: summed volumes differ from the per-direction ones"
             );
+            // The exchange through workgroup memory gives the same output as the subgroup one
+            // the adapter's subgroups allow ("auto"), in both layouts.
+            subgroup_runs += usize::from(timing.subgroups) + usize::from(t.subgroups);
+            for volumes in [GpuVolumes::PerDirection, GpuVolumes::Summed] {
+                let q = SgmParams {
+                    gpu_exchange: GpuExchange::Workgroup,
+                    gpu_volumes: volumes,
+                    ..*p
+                };
+                let (got_wg, t) = kernels.run(&ctx, &left, &right, w, h, m, &q).unwrap();
+                assert!(!t.subgroups, "{name}");
+                assert!(
+                    same(&got_wg),
+                    "{name}: the workgroup exchange differs from the subgroup one ({volumes:?})"
+                );
+            }
             if p.speckle_window > 0 {
                 // The speckle kernels had work to do: without them the output differs.
                 let q = SgmParams {
@@ -239,6 +265,13 @@ fn sgm_kernels_match_the_cpu_path() {
                 assert!(removed > 0, "{name}: no speckle was removed");
             }
         }
+    }
+    // Where the adapter has subgroups of one size (lavapipe: 8 on AVX2 machines, NVIDIA: 32),
+    // the cases whose paths fit one ran the subgroup kernel.
+    let sub = ctx.subgroup_size();
+    println!("subgroups: {sub:?}; {subgroup_runs} runs with the subgroup exchange");
+    if sub.is_some_and(|s| s >= 8) {
+        assert!(subgroup_runs >= 2, "the subgroup kernel never ran");
     }
     // Beyond the kernel's disparity limit: a clear error.
     let p = SgmParams {

@@ -22,9 +22,30 @@ fn all_shaders_validate() {
         &mut files,
     );
     assert!(!files.is_empty(), "no shaders found");
+    // Kernels may use shared files of the same folder (`// uses: NAME.wgsl`); each file is
+    // validated as the host assembles it.
+    let sources: Vec<(String, String)> = files
+        .iter()
+        .map(|f| {
+            let name = f.file_name().unwrap().to_string_lossy().into_owned();
+            (name, std::fs::read_to_string(f).expect("read shader"))
+        })
+        .collect();
     let mut failures = Vec::new();
-    for f in &files {
-        let src = std::fs::read_to_string(f).expect("read shader");
+    for (f, (_, raw)) in files.iter().zip(&sources) {
+        let folder: Vec<(&str, &str)> = files
+            .iter()
+            .zip(&sources)
+            .filter(|(g, _)| g.parent() == f.parent())
+            .map(|(_, (n, s))| (n.as_str(), s.as_str()))
+            .collect();
+        let src = match misslam_framework::gpu::wgsl_with_uses(raw, &folder) {
+            Ok(s) => s,
+            Err(e) => {
+                failures.push(format!("{}: {e}", f.display()));
+                continue;
+            }
+        };
         let module = match naga::front::wgsl::parse_str(&src) {
             Ok(m) => m,
             Err(e) => {
@@ -32,10 +53,18 @@ fn all_shaders_validate() {
                 continue;
             }
         };
-        let mut v = naga::valid::Validator::new(
-            naga::valid::ValidationFlags::all(),
-            naga::valid::Capabilities::default(),
-        );
+        // Subgroup kernels need the adapter's subgroups (the host picks them only then).
+        let subgroups = src.contains("@builtin(subgroup_");
+        let caps = if subgroups {
+            naga::valid::Capabilities::SUBGROUP
+        } else {
+            naga::valid::Capabilities::default()
+        };
+        let mut v = naga::valid::Validator::new(naga::valid::ValidationFlags::all(), caps);
+        if subgroups {
+            v.subgroup_stages(naga::valid::ShaderStages::COMPUTE)
+                .subgroup_operations(naga::valid::SubgroupOperationSet::all());
+        }
         if let Err(e) = v.validate(&module) {
             failures.push(e.emit_to_string_with_path(&src, &f.display().to_string()));
         }

@@ -138,8 +138,10 @@ impl GpuContext {
         };
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("misslam"),
-            // Timestamps time the GPU stages where the adapter has them.
-            required_features: adapter.features() & wgpu::Features::TIMESTAMP_QUERY,
+            // Timestamps time the GPU stages where the adapter has them; subgroups let kernels
+            // exchange values between invocations without workgroup memory and barriers.
+            required_features: adapter.features()
+                & (wgpu::Features::TIMESTAMP_QUERY | wgpu::Features::SUBGROUP),
             required_limits: limits,
             ..Default::default()
         }))
@@ -160,6 +162,15 @@ impl GpuContext {
             queue,
             adapter_info,
         })
+    }
+
+    /// The size of every subgroup of this device's compute kernels, where the device has
+    /// subgroups ([`wgpu::Features::SUBGROUP`]) and they all have one size; `None` otherwise.
+    pub fn subgroup_size(&self) -> Option<u32> {
+        let info = &self.adapter_info;
+        (self.device.features().contains(wgpu::Features::SUBGROUP)
+            && info.subgroup_min_size == info.subgroup_max_size)
+            .then_some(info.subgroup_min_size)
     }
 
     /// Compiles a WGSL compute shader into a pipeline with an automatic layout.
@@ -268,6 +279,38 @@ impl GpuContext {
     }
 }
 
+/// The WGSL source of a kernel that names shared files by lines `// uses: FILE.wgsl`: its
+/// `enable ...;` directives (which WGSL wants first), then each used file as `files` gives it
+/// (name, source), in the order of those lines, then the rest of the kernel. A used file does
+/// not use others. The shader test assembles every kernel so before it validates it.
+pub fn wgsl_with_uses(src: &str, files: &[(&str, &str)]) -> Result<String, String> {
+    let mut head = String::new();
+    let mut shared = String::new();
+    let mut body = String::new();
+    for line in src.lines() {
+        let trimmed = line.trim();
+        if let Some(name) = trimmed.strip_prefix("// uses:") {
+            let name = name.trim();
+            let (_, used) = files
+                .iter()
+                .find(|(n, _)| *n == name)
+                .ok_or_else(|| format!("the kernel uses `{name}`, which is not among its files"))?;
+            if used.lines().any(|l| l.trim().starts_with("// uses:")) {
+                return Err(format!("`{name}` uses other files: only kernels may"));
+            }
+            shared.push_str(used);
+            shared.push('\n');
+        } else if trimmed.starts_with("enable ") {
+            head.push_str(line);
+            head.push('\n');
+        } else {
+            body.push_str(line);
+            body.push('\n');
+        }
+    }
+    Ok(head + &shared + &body)
+}
+
 /// WGSL of the RGB-to-gray kernel.
 pub const GRAY_WGSL: &str = include_str!("../../shaders/image/gray.wgsl");
 
@@ -333,6 +376,20 @@ impl GrayKernel {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn a_kernel_gets_its_used_files_after_its_directives() {
+        let kernel = "enable subgroups;\n// uses: a.wgsl\nfn main() {}\n";
+        let src = super::wgsl_with_uses(kernel, &[("a.wgsl", "const A: u32 = 1u;")]).unwrap();
+        assert_eq!(
+            src, "enable subgroups;\nconst A: u32 = 1u;\nfn main() {}\n",
+            "directive, used file, kernel"
+        );
+        let err = super::wgsl_with_uses(kernel, &[]).unwrap_err();
+        assert!(err.contains("a.wgsl"), "{err}");
+        let nested = super::wgsl_with_uses(kernel, &[("a.wgsl", "// uses: b.wgsl")]).unwrap_err();
+        assert!(nested.contains("only kernels"), "{nested}");
+    }
+
     #[test]
     fn only_the_primary_backends_unless_the_environment_names_others() {
         if std::env::var_os("WGPU_BACKEND").is_some() {

@@ -292,10 +292,13 @@ pub fn sgm_gpu(
         select_ms: med(&|t| t.select_ms),
         median_ms: med(&|t| t.median_ms),
         readback_ms: med(&|t| t.readback_ms),
+        submit_ms: med(&|t| t.submit_ms),
+        convert_ms: med(&|t| t.convert_ms),
         speckle_ms: med(&|t| t.speckle_ms),
         total_ms: med(&|t| t.total_ms),
         gpu_timestamps: stages.iter().all(|t| t.gpu_timestamps),
         summed_volumes: stages.iter().any(|t| t.summed_volumes),
+        subgroups: stages.iter().any(|t| t.subgroups),
     };
     let mut scratch = Scratch::default();
     let mut cpu_out = Vec::new();

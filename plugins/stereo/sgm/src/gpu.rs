@@ -2,7 +2,10 @@
 //!
 //! 1. census of both images (one invocation per pixel);
 //! 2. aggregation along all 4 or 8 directions in one dispatch: a path per THREADS invocations, each
-//!    invocation holding four consecutive disparities in a vec4, one barrier per pixel;
+//!    invocation holding four consecutive disparities in a vec4; they exchange their neighbouring
+//!    costs and their minimum at each pixel by subgroup shuffles where the adapter's subgroups
+//!    have one size that holds a path (`gpu_exchange`), else through workgroup memory with one
+//!    barrier per pixel;
 //!    each direction writes its own volume of L, as bytes when the largest cost plus P2 fits
 //!    one (the default parameters) and as u16 otherwise; or, where the adapter's storage
 //!    buffers cannot hold a volume per direction (`gpu_volumes`), every direction adds its L into
@@ -20,13 +23,18 @@
 use std::collections::HashMap;
 
 use crate::reference::{DIRS, DIRS4};
-use crate::sgm::{check_pair, GpuVolumes, SgmParams};
-use misslam_framework::gpu::{GpuContext, GpuError};
+use crate::sgm::{check_pair, GpuExchange, GpuVolumes, SgmParams};
+use misslam_framework::gpu::{wgsl_with_uses, GpuContext, GpuError};
 
 /// WGSL of the kernels.
 pub const CENSUS_WGSL: &str = include_str!("../../../../shaders/stereo/sgm_census.wgsl");
-/// Aggregation along all directions.
+/// What both aggregation kernels share: paths, cost, recurrence, store (`// uses:` line).
+pub const PATHS_WGSL: &str = include_str!("../../../../shaders/stereo/sgm_paths.wgsl");
+/// Aggregation along all directions, exchanging through workgroup memory.
 pub const AGGREGATE_WGSL: &str = include_str!("../../../../shaders/stereo/sgm_aggregate.wgsl");
+/// Aggregation along all directions, exchanging by subgroup shuffles.
+pub const AGGREGATE_SUBGROUP_WGSL: &str =
+    include_str!("../../../../shaders/stereo/sgm_aggregate_subgroup.wgsl");
 /// Winner-takes-all and left-right check.
 pub const SELECT_WGSL: &str = include_str!("../../../../shaders/stereo/sgm_select.wgsl");
 /// 3x3 median.
@@ -60,8 +68,14 @@ pub struct SgmGpuTiming {
     /// Speckle removal.
     pub speckle_ms: f64,
     /// After the kernels: the copy to the host, the mapping, the conversion to NaN (with GPU
-    /// timestamps: the wall time from submission to the host's copy less the kernels' times).
+    /// timestamps: the wall time from submission to the host's copy less the kernels' times,
+    /// so it also holds the submission and the gaps between the kernels).
     pub readback_ms: f64,
+    /// Of `readback_ms`: the host's submission call (wall time).
+    pub submit_ms: f64,
+    /// Of `readback_ms`: the host's work once the GPU is done, the mapped results read and
+    /// converted to NaN (wall time).
+    pub convert_ms: f64,
     /// Everything, from the gray images to the disparity map (wall time).
     pub total_ms: f64,
     /// True when the kernels' times come from GPU timestamps, false when each stage was
@@ -70,6 +84,8 @@ pub struct SgmGpuTiming {
     pub gpu_timestamps: bool,
     /// True when the directions' costs were summed into one volume (`gpu_volumes`).
     pub summed_volumes: bool,
+    /// True when the aggregation exchanged by subgroup shuffles (`gpu_exchange`).
+    pub subgroups: bool,
 }
 
 /// How the aggregation kernel is specialised for a disparity count and cost bound.
@@ -83,6 +99,9 @@ struct Layout {
     bytes: u32,
     /// One volume of sums instead of a volume per direction.
     summed: bool,
+    /// Subgroup lanes per path (a power of two, at least `threads`) when the invocations
+    /// exchange by subgroup shuffles; 0 when through workgroup memory.
+    lanes: u32,
 }
 
 impl Layout {
@@ -104,6 +123,30 @@ impl Layout {
             paths,
             bytes,
             summed: false,
+            lanes: 0,
+        }
+    }
+
+    /// This layout with the exchange `gpu_exchange` asks for, on an adapter whose subgroups
+    /// all have `subgroup` lanes (`None`: no subgroups, or of varying size). A path takes the
+    /// next power of two of `threads` lanes of one subgroup, so it must fit one; a workgroup
+    /// is a whole number of subgroups, of at least 64 invocations.
+    fn exchanged(self, choice: GpuExchange, subgroup: Option<u32>) -> Result<Layout, String> {
+        let lanes = self.threads.next_power_of_two();
+        match (choice, subgroup.filter(|&s| lanes <= s)) {
+            (GpuExchange::Workgroup, _) | (GpuExchange::Auto, None) => Ok(self),
+            (_, Some(s)) => Ok(Layout {
+                lanes,
+                paths: s.max(64) / lanes,
+                ..self
+            }),
+            (GpuExchange::Subgroup, None) => Err(match subgroup {
+                Some(s) => format!(
+                    "gpu_exchange = \"subgroup\": a path's {lanes} lanes ({} disparities) do not fit the adapter's subgroups of {s}: use \"auto\" or \"workgroup\"",
+                    4 * self.threads
+                ),
+                None => "gpu_exchange = \"subgroup\": the adapter has no subgroups, or not of one size: use \"auto\" or \"workgroup\"".to_owned(),
+            }),
         }
     }
 
@@ -123,9 +166,16 @@ impl Layout {
         }
     }
 
-    /// The layout for these parameters where storage buffers hold at most `max` bytes: per
-    /// direction or summed, as `gpu_volumes` asks and `max` allows.
-    fn choose(p: &SgmParams, w: usize, h: usize, dirs: usize, max: u64) -> Result<Layout, String> {
+    /// The layout for these parameters where storage buffers hold at most `max` bytes and
+    /// subgroups have `subgroup` lanes: per direction or summed, as `gpu_volumes` asks and
+    /// `max` allows; exchanging by subgroups or workgroup memory, as `gpu_exchange` asks and
+    /// the subgroups allow.
+    fn choose(
+        p: &SgmParams,
+        (w, h, dirs): (usize, usize, usize),
+        max: u64,
+        subgroup: Option<u32>,
+    ) -> Result<Layout, String> {
         let per_direction = Layout::of(p);
         let summed = Layout {
             summed: true,
@@ -137,6 +187,7 @@ impl Layout {
             GpuVolumes::Auto if per_direction.volumes_bytes(w, h, dirs) <= max => per_direction,
             GpuVolumes::Auto => summed,
         };
+        let layout = layout.exchanged(p.gpu_exchange, subgroup)?;
         let need = layout.volumes_bytes(w, h, dirs);
         if need > max {
             return Err(format!(
@@ -192,7 +243,6 @@ struct Frame {
     dirs: usize,
     layout: Layout,
     images: wgpu::Buffer,
-    upload: wgpu::Buffer,
     mask: wgpu::Buffer,
     disp: wgpu::Buffer,
     out: wgpu::Buffer,
@@ -297,14 +347,21 @@ impl SgmGpu {
         if self.specialised.contains_key(&(l, dirs)) {
             return Ok(());
         }
+        let mut constants = vec![
+            ("THREADS", l.threads),
+            ("PATHS", l.paths),
+            ("BYTES", l.bytes),
+            ("SUMMED", u32::from(l.summed)),
+        ];
+        let kernel = if l.lanes > 0 {
+            constants.push(("LANES", l.lanes));
+            AGGREGATE_SUBGROUP_WGSL
+        } else {
+            AGGREGATE_WGSL
+        };
         let agg = specialise(
-            AGGREGATE_WGSL,
-            &[
-                ("THREADS", l.threads),
-                ("PATHS", l.paths),
-                ("BYTES", l.bytes),
-                ("SUMMED", u32::from(l.summed)),
-            ],
+            &wgsl_with_uses(kernel, &[("sgm_paths.wgsl", PATHS_WGSL)])?,
+            &constants,
         )?;
         let (sel_bytes, sel_dirs) = l.selected(dirs);
         let sel = specialise(
@@ -346,7 +403,6 @@ impl SgmGpu {
         let image_words = (w * h).div_ceil(4) as u64;
         let images = buffer("sgm images", 8 * image_words, U::STORAGE | U::COPY_DST);
         let mask = buffer("sgm mask", 4 * image_words, U::STORAGE | U::COPY_DST);
-        let upload = buffer("sgm upload", 12 * image_words, U::MAP_WRITE | U::COPY_SRC);
         let codes = buffer("sgm census", 2 * px * 8, U::STORAGE);
         // The aggregated costs (the sums are cleared before each pair), and a placeholder for the
         // aggregation's binding the layout does not use.
@@ -418,7 +474,6 @@ impl SgmGpu {
             dirs,
             layout: l,
             images,
-            upload,
             mask,
             disp,
             out,
@@ -439,7 +494,8 @@ impl SgmGpu {
     }
 
     /// The kernels' layout for these parameters on this adapter: the aggregated costs per
-    /// direction or summed, as `gpu_volumes` asks and the adapter's buffer limits allow.
+    /// direction or summed, as `gpu_volumes` asks and the adapter's buffer limits allow, and
+    /// the exchange, as `gpu_exchange` asks and its subgroups allow.
     fn layout(
         ctx: &GpuContext,
         p: &SgmParams,
@@ -451,7 +507,7 @@ impl SgmGpu {
         let max = limits
             .max_storage_buffer_binding_size
             .min(limits.max_buffer_size);
-        Layout::choose(p, w, h, dirs, max)
+        Layout::choose(p, (w, h, dirs), max, ctx.subgroup_size())
     }
 
     /// Disparity of the left image (px, NaN invalid): the contract of [`crate::sgm::sgm`].
@@ -496,33 +552,28 @@ impl SgmGpu {
         let t_upload = std::time::Instant::now();
         let (wu, hu) = (w as u32, h as u32);
         let image_words = (w * h).div_ceil(4);
-        // The images (and the mask) go through a mapped upload buffer: left, right and mask,
-        // each padded to whole words (the kernels read four gray levels per word).
+        // The images (and the mask) are written straight into the queue's staging memory,
+        // copied at the submission (no wait for a mapping): left and right, each padded to whole
+        // words (the kernels read four gray levels per word), and the mask as 0 / 1 bytes.
         let plane = 4 * image_words;
+        let size = |bytes: usize| {
+            wgpu::BufferSize::new(bytes as u64).ok_or_else(|| "an empty image".to_owned())
+        };
         {
-            let slice = f.upload.slice(..);
-            let (tx, rx) = std::sync::mpsc::channel();
-            slice.map_async(wgpu::MapMode::Write, move |r| {
-                let _ = tx.send(r);
-            });
-            ctx.wait().map_err(gpu)?;
-            rx.recv()
-                .map_err(|e| e.to_string())?
-                .map_err(|e| e.to_string())?;
-            let host = &mut self.host;
-            host.clear();
-            host.resize(3 * plane, 0);
-            host[..w * h].copy_from_slice(left);
-            host[plane..plane + w * h].copy_from_slice(right);
-            if let Some(mask) = valid {
-                for (o, &v) in host[2 * plane..2 * plane + w * h].iter_mut().zip(mask) {
-                    *o = u8::from(v != 0);
-                }
-            }
-            let mut m = slice.get_mapped_range_mut().map_err(|e| e.to_string())?;
-            m.copy_from_slice(host);
+            let mut m = q
+                .write_buffer_with(&f.images, 0, size(2 * plane)?)
+                .ok_or("the GPU could not stage the images")?;
+            m.slice(..w * h).copy_from_slice(left);
+            m.slice(plane..plane + w * h).copy_from_slice(right);
+            m.slice(w * h..plane).fill(0);
+            m.slice(plane + w * h..).fill(0);
         }
-        f.upload.unmap();
+        if let Some(mask) = valid {
+            self.host.clear();
+            self.host.extend(mask.iter().map(|&v| u8::from(v != 0)));
+            self.host.resize(plane, 0);
+            q.write_buffer(&f.mask, 0, &self.host);
+        }
         let right_words = image_words as u32;
         // Words of one direction's volume (the aggregation's per-direction layout).
         let volume_words = ((w * h) as u64 * u64::from(layout.dp() * layout.bytes) / 4) as u32;
@@ -639,10 +690,6 @@ impl SgmGpu {
         };
         let mut stage_ms = [0.0f64; STAGES as usize];
         let mut enc = ctx.device.create_command_encoder(&Default::default());
-        enc.copy_buffer_to_buffer(&f.upload, 0, &f.images, 0, 2 * plane as u64);
-        if valid.is_some() {
-            enc.copy_buffer_to_buffer(&f.upload, 2 * plane as u64, &f.mask, 0, plane as u64);
-        }
         if layout.summed {
             enc.clear_buffer(&f.volumes, 0, None);
         }
@@ -680,6 +727,7 @@ impl SgmGpu {
         }
         let t_submit = std::time::Instant::now();
         q.submit(Some(enc.finish()));
+        timing.submit_ms = t_submit.elapsed().as_secs_f64() * 1e3;
         // Both mappings are requested, then one wait.
         let mut buffers = vec![&f.staging];
         buffers.extend(ts.map(|t| &t.read));
@@ -694,6 +742,7 @@ impl SgmGpu {
             })
             .collect();
         ctx.wait().map_err(gpu)?;
+        let t_convert = std::time::Instant::now();
         let mut d = Vec::new();
         let mut stamps = Vec::new();
         for (k, (buf, rx)) in buffers.iter().zip(mapped).enumerate() {
@@ -727,6 +776,7 @@ impl SgmGpu {
             buf.unmap();
         }
         let after_submit = t_submit.elapsed().as_secs_f64() * 1e3;
+        timing.convert_ms = t_convert.elapsed().as_secs_f64() * 1e3;
         let mut kernels = 0.0;
         if ts.is_some() {
             let period = f64::from(q.get_timestamp_period()) * 1e-6;
@@ -747,6 +797,7 @@ impl SgmGpu {
         ] = stage_ms;
         timing.readback_ms = (after_submit - kernels).max(0.0);
         timing.summed_volumes = layout.summed;
+        timing.subgroups = layout.lanes > 0;
         timing.total_ms = t_all.elapsed().as_secs_f64() * 1e3;
         Ok((d, timing))
     }
@@ -758,13 +809,16 @@ mod tests {
 
     #[test]
     fn specialise_replaces_every_constant_and_names_a_missing_one() {
-        let src = specialise(
-            AGGREGATE_WGSL,
-            &[("THREADS", 36), ("PATHS", 1), ("BYTES", 2)],
-        )
-        .expect("the aggregation kernel has the constants");
-        assert!(src.contains("const THREADS: u32 = 36u;"));
-        assert!(src.contains("const BYTES: u32 = 2u;"));
+        let uses = [("sgm_paths.wgsl", PATHS_WGSL)];
+        for kernel in [AGGREGATE_WGSL, AGGREGATE_SUBGROUP_WGSL] {
+            let src = specialise(
+                &wgsl_with_uses(kernel, &uses).unwrap(),
+                &[("THREADS", 36), ("PATHS", 1), ("BYTES", 2)],
+            )
+            .expect("the aggregation kernels have the constants");
+            assert!(src.contains("const THREADS: u32 = 36u;"));
+            assert!(src.contains("const BYTES: u32 = 2u;"));
+        }
         let sel = specialise(SELECT_WGSL, &[("BYTES", 1), ("DIRS", 4), ("THREADS", 64)]).unwrap();
         assert!(sel.contains("const DIRS: u32 = 4u;"));
         let err = specialise(SELECT_WGSL, &[("PER", 4)]).unwrap_err();
@@ -780,7 +834,7 @@ mod tests {
         // 640x480, 128 disparities, 8 paths: 315 MB per direction, 79 MB summed.
         let per_direction = 640 * 480 * 128 * 8;
         let summed = 640 * 480 * 128 * 2;
-        let auto = |max: u64| Layout::choose(&p, 640, 480, 8, max);
+        let auto = |max: u64| Layout::choose(&p, (640, 480, 8), max, None);
         assert!(!auto(per_direction).unwrap().summed, "fits: per direction");
         assert!(
             auto(per_direction - 1).unwrap().summed,
@@ -794,10 +848,9 @@ mod tests {
                     gpu_volumes: v,
                     ..p
                 },
-                640,
-                480,
-                8,
+                (640, 480, 8),
                 max,
+                None,
             )
         };
         assert!(forced(GpuVolumes::Summed, u64::MAX).unwrap().summed);
@@ -805,7 +858,7 @@ mod tests {
         assert!(err.contains("gpu_volumes"), "{err}");
         // u16 costs take two bytes per direction; the sums stay two bytes.
         let wide = SgmParams { p2: 1000, ..p };
-        let l = Layout::choose(&wide, 640, 480, 8, u64::MAX).unwrap();
+        let l = Layout::choose(&wide, (640, 480, 8), u64::MAX, None).unwrap();
         assert_eq!(l.volumes_bytes(640, 480, 8), 2 * per_direction);
         assert_eq!(
             Layout { summed: true, ..l }.volumes_bytes(640, 480, 8),
@@ -825,5 +878,36 @@ mod tests {
         };
         let l = Layout::of(&q);
         assert_eq!((l.threads, l.paths, l.bytes), (40, 1, 2));
+    }
+
+    #[test]
+    fn subgroups_exchange_where_a_path_fits_one() {
+        let p = |d: u32, exchange: GpuExchange| SgmParams {
+            max_disparity: d,
+            gpu_exchange: exchange,
+            ..SgmParams::default()
+        };
+        let choose = |q: &SgmParams, subgroup| Layout::choose(q, (64, 48, 8), u64::MAX, subgroup);
+        // 128 disparities: 32 invocations, one NVIDIA subgroup, two paths a workgroup.
+        let l = choose(&p(128, GpuExchange::Auto), Some(32)).unwrap();
+        assert_eq!((l.threads, l.lanes, l.paths), (32, 32, 2));
+        // 96: 24 invocations in 32 lanes (the last 8 hold padding); the volume keeps 96.
+        let l = choose(&p(96, GpuExchange::Auto), Some(32)).unwrap();
+        assert_eq!((l.threads, l.lanes, l.paths, l.dp()), (24, 32, 2, 96));
+        // 32 disparities on subgroups of 8 (lavapipe on AVX2): 8 paths of 8 lanes.
+        let l = choose(&p(32, GpuExchange::Auto), Some(8)).unwrap();
+        assert_eq!((l.threads, l.lanes, l.paths), (8, 8, 8));
+        // Subgroups of 64: a workgroup is one subgroup.
+        let l = choose(&p(64, GpuExchange::Auto), Some(64)).unwrap();
+        assert_eq!((l.lanes, l.paths), (16, 4));
+        // Too small, absent or of varying size: workgroup memory, or an error when forced.
+        for sub in [Some(16), None] {
+            let l = choose(&p(128, GpuExchange::Auto), sub).unwrap();
+            assert_eq!((l.lanes, l.paths), (0, 2));
+            let err = choose(&p(128, GpuExchange::Subgroup), sub).unwrap_err();
+            assert!(err.contains("gpu_exchange"), "{err}");
+        }
+        let l = choose(&p(128, GpuExchange::Workgroup), Some(32)).unwrap();
+        assert_eq!(l.lanes, 0);
     }
 }

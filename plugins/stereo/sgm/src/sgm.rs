@@ -76,6 +76,36 @@ pub struct SgmParams {
     /// paths, for adapters whose storage buffers cannot hold a volume per direction), or "auto"
     /// (per direction when it fits the adapter's limits, else summed). The output is the same.
     pub gpu_volumes: GpuVolumes,
+    /// How the GPU aggregation's invocations of one path exchange their neighbouring costs and
+    /// their minimum at each pixel: "subgroup" (subgroup shuffles, no barrier; needs an adapter
+    /// whose subgroups have one size that holds a path's invocations), "workgroup" (workgroup
+    /// memory and a barrier per pixel, on any adapter) or "auto" (subgroups where the adapter
+    /// allows, else workgroup memory). The output is the same.
+    pub gpu_exchange: GpuExchange,
+}
+
+/// How the GPU aggregation exchanges values between a path's invocations (see
+/// [`SgmParams::gpu_exchange`]).
+#[derive(
+    Clone,
+    Copy,
+    Debug,
+    Default,
+    PartialEq,
+    Eq,
+    serde::Serialize,
+    serde::Deserialize,
+    schemars::JsonSchema,
+)]
+#[serde(rename_all = "snake_case")]
+pub enum GpuExchange {
+    /// Subgroups where the adapter allows, else workgroup memory.
+    #[default]
+    Auto,
+    /// Subgroup shuffles.
+    Subgroup,
+    /// Workgroup memory and barriers.
+    Workgroup,
 }
 
 /// Layout of the GPU kernels' aggregated costs (see [`SgmParams::gpu_volumes`]).
@@ -121,6 +151,7 @@ impl Default for SgmParams {
             speckle_range: 2.0,
             device: misslam_framework::gpu::Device::Cpu,
             gpu_volumes: GpuVolumes::Auto,
+            gpu_exchange: GpuExchange::Auto,
         }
     }
 }
