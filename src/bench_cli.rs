@@ -327,11 +327,11 @@ pub(crate) fn run(which: BenchCommand) -> anyhow::Result<()> {
                 r.gpu_ms, r.runs, r.gpu_min_ms, r.cpu_threads, r.cpu_ms, r.speedup
             );
             out!(
-                "stages ({}; {}; {}): upload {:.3}, census {:.3}, aggregate {:.3}, select {:.3}, median {:.3}, readback {:.3} (submission {:.3}, host copy {:.3}), speckles {:.3}, total {:.3} ms",
+                "stages ({}; {}; {}): upload {:.3}, census {:.3}, aggregate {:.3}, select {:.3}, median {:.3}, readback {:.3} (submission {:.3}, host copy {:.3}), speckles {:.3}, finish {:.3}, total {:.3} ms",
                 if s.gpu_timestamps { "GPU timestamps" } else { "each waited for" },
                 if s.summed_volumes { "costs summed into one volume" } else { "a volume per direction" },
                 if s.subgroups { "subgroup exchange" } else { "workgroup exchange" },
-                s.upload_ms, s.census_ms, s.aggregate_ms, s.select_ms, s.median_ms, s.readback_ms, s.submit_ms, s.convert_ms, s.speckle_ms, s.total_ms
+                s.upload_ms, s.census_ms, s.aggregate_ms, s.select_ms, s.median_ms, s.readback_ms, s.submit_ms, s.convert_ms, s.speckle_ms, s.finish_ms, s.total_ms
             );
             out!(
                 "parity with the CPU: {} pixels differ in validity, max |diff| {:.2e} px; density {:.1} %",

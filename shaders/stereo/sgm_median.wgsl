@@ -49,3 +49,18 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     dst[i] = v[n / 2u];
 }
+
+// The final map for the host (entry point `finish`, after the median and the speckles, over
+// 8x8 tiles): the disparity's bits, or a quiet NaN's where it is invalid, so the host's
+// readback is a plain copy.
+@group(0) @binding(3) var<storage, read_write> bits: array<u32>;
+
+@compute @workgroup_size(8, 8, 1)
+fn finish(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x >= params.width || gid.y >= params.height) {
+        return;
+    }
+    let i = gid.y * params.width + gid.x;
+    let v = src[i];
+    bits[i] = select(bitcast<u32>(v), 0x7fc00000u, v == INVALID);
+}

@@ -7,7 +7,7 @@
 //   merge    joins each valid pixel with its right and lower neighbour (atomicMin hooks the
 //            larger root under the smaller, so parent(i) <= i and every find terminates);
 //   flatten  parent(i) = root of i;
-//   count    size(root) += 1 per valid pixel;
+//   count    size(root) += 1 per valid pixel (summed per tile for the tile's smallest root);
 //   apply    invalidates the pixels of small components.
 // CPU reference: misslam_depth_sgm::sgm::remove_speckles (a flood fill); the components are
 // the same partition, so the output is the same.
@@ -111,13 +111,40 @@ fn flatten(@builtin(global_invocation_id) gid: vec3<u32>) {
     atomicStore(&parent[i], find(i));
 }
 
+// The tile's smallest root and how many of its pixels have it: most tiles lie inside one
+// large component, whose pixels would otherwise all add to one counter in global memory.
+var<workgroup> leader: atomic<u32>;
+var<workgroup> leader_count: atomic<u32>;
+
 @compute @workgroup_size(16, 16, 1)
-fn count(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let i = pixel(gid);
-    if (i == 0xffffffffu || disparity[i] == INVALID) {
-        return;
+fn count(
+    @builtin(global_invocation_id) gid: vec3<u32>,
+    @builtin(local_invocation_index) li: u32,
+) {
+    if (li == 0u) {
+        atomicStore(&leader, 0xffffffffu);
+        atomicStore(&leader_count, 0u);
     }
-    atomicAdd(&size[atomicLoad(&parent[i])], 1u);
+    workgroupBarrier();
+    let i = pixel(gid);
+    var root = 0xffffffffu;
+    if (i != 0xffffffffu && disparity[i] != INVALID) {
+        root = atomicLoad(&parent[i]);
+        atomicMin(&leader, root);
+    }
+    workgroupBarrier();
+    let l = atomicLoad(&leader);
+    if (root != 0xffffffffu) {
+        if (root == l) {
+            atomicAdd(&leader_count, 1u);
+        } else {
+            atomicAdd(&size[root], 1u);
+        }
+    }
+    workgroupBarrier();
+    if (li == 0u && l != 0xffffffffu) {
+        atomicAdd(&size[l], atomicLoad(&leader_count));
+    }
 }
 
 @compute @workgroup_size(16, 16, 1)

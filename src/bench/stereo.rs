@@ -295,6 +295,7 @@ pub fn sgm_gpu(
         submit_ms: med(&|t| t.submit_ms),
         convert_ms: med(&|t| t.convert_ms),
         speckle_ms: med(&|t| t.speckle_ms),
+        finish_ms: med(&|t| t.finish_ms),
         total_ms: med(&|t| t.total_ms),
         gpu_timestamps: stages.iter().all(|t| t.gpu_timestamps),
         summed_volumes: stages.iter().any(|t| t.summed_volumes),

@@ -1,6 +1,7 @@
 //! SGM on the GPU (`shaders/stereo/sgm_*.wgsl`), one submission per pair:
 //!
-//! 1. census of both images (one invocation per pixel);
+//! 1. census of both images (one invocation per pixel), then the matching costs, a byte per
+//!    disparity, which every direction reads;
 //! 2. aggregation along all 4 or 8 directions in one dispatch: a path per THREADS invocations, each
 //!    invocation holding four consecutive disparities in a vec4; they exchange their neighbouring
 //!    costs and their minimum at each pixel by subgroup shuffles where the adapter's subgroups
@@ -14,7 +15,8 @@
 //!    margin and the parabola, the right image's winners (atomic minima in workgroup memory) and
 //!    the left-right check;
 //! 4. the 3x3 median;
-//! 5. speckle removal by a parallel union-find.
+//! 5. speckle removal by a parallel union-find;
+//! 6. the final map's bits, NaN where invalid, so the readback is a plain copy.
 //!
 //! The buffers live across calls (reallocated when the size or the disparity layout changes);
 //! the stages are timed by GPU timestamps where the adapter has them. The kernels compute the
@@ -35,15 +37,19 @@ pub const AGGREGATE_WGSL: &str = include_str!("../../../../shaders/stereo/sgm_ag
 /// Aggregation along all directions, exchanging by subgroup shuffles.
 pub const AGGREGATE_SUBGROUP_WGSL: &str =
     include_str!("../../../../shaders/stereo/sgm_aggregate_subgroup.wgsl");
-/// Winner-takes-all and left-right check.
+/// What both selection kernels share: the output of a pixel, the left-right check.
+pub const SELECT_COMMON_WGSL: &str =
+    include_str!("../../../../shaders/stereo/sgm_select_common.wgsl");
+/// Winner-takes-all and left-right check, a pixel per invocation.
 pub const SELECT_WGSL: &str = include_str!("../../../../shaders/stereo/sgm_select.wgsl");
+/// Winner-takes-all and left-right check, a pixel per cluster of subgroup lanes.
+pub const SELECT_SUBGROUP_WGSL: &str =
+    include_str!("../../../../shaders/stereo/sgm_select_subgroup.wgsl");
 /// 3x3 median.
 pub const MEDIAN_WGSL: &str = include_str!("../../../../shaders/stereo/sgm_median.wgsl");
 /// Speckle removal (union-find).
 pub const SPECKLE_WGSL: &str = include_str!("../../../../shaders/stereo/sgm_speckle.wgsl");
 
-/// Marks an invalid pixel in the kernels' output.
-const INVALID: f32 = -3.0e38;
 /// The largest disparity count (the right winners' keys keep d in 11 bits).
 const MAX_D: u32 = 1024;
 /// The widest image (the selection keeps a row's right winners in workgroup memory).
@@ -57,7 +63,7 @@ pub struct SgmGpuTiming {
     /// Images and parameters packed and queued for upload (host time; the first call's
     /// compilation and allocation are only in `total_ms`).
     pub upload_ms: f64,
-    /// Census of both images.
+    /// Census of both images and the matching costs.
     pub census_ms: f64,
     /// All directions.
     pub aggregate_ms: f64,
@@ -67,14 +73,15 @@ pub struct SgmGpuTiming {
     pub median_ms: f64,
     /// Speckle removal.
     pub speckle_ms: f64,
-    /// After the kernels: the copy to the host, the mapping, the conversion to NaN (with GPU
-    /// timestamps: the wall time from submission to the host's copy less the kernels' times,
+    /// The final map's bits for the host (NaN where invalid).
+    pub finish_ms: f64,
+    /// After the kernels: the copy to the host and the mapping (with GPU timestamps: the wall time from submission to the host's copy less the kernels' times,
     /// so it also holds the submission and the gaps between the kernels).
     pub readback_ms: f64,
     /// Of `readback_ms`: the host's submission call (wall time).
     pub submit_ms: f64,
-    /// Of `readback_ms`: the host's work once the GPU is done, the mapped results read and
-    /// converted to NaN (wall time).
+    /// Of `readback_ms`: the host's work once the GPU is done, the mapped results copied
+    /// (wall time).
     pub convert_ms: f64,
     /// Everything, from the gray images to the disparity map (wall time).
     pub total_ms: f64,
@@ -133,7 +140,9 @@ impl Layout {
     /// is a whole number of subgroups, of at least 64 invocations.
     fn exchanged(self, choice: GpuExchange, subgroup: Option<u32>) -> Result<Layout, String> {
         let lanes = self.threads.next_power_of_two();
-        match (choice, subgroup.filter(|&s| lanes <= s)) {
+        // The selection's workgroup is a whole number of subgroups too.
+        let fits = |&s: &u32| lanes <= s && SELECT_THREADS.is_multiple_of(s);
+        match (choice, subgroup.filter(fits)) {
             (GpuExchange::Workgroup, _) | (GpuExchange::Auto, None) => Ok(self),
             (_, Some(s)) => Ok(Layout {
                 lanes,
@@ -244,8 +253,6 @@ struct Frame {
     layout: Layout,
     images: wgpu::Buffer,
     mask: wgpu::Buffer,
-    disp: wgpu::Buffer,
-    out: wgpu::Buffer,
     staging: wgpu::Buffer,
     census_u: wgpu::Buffer,
     aggregate_u: wgpu::Buffer,
@@ -255,13 +262,39 @@ struct Frame {
     /// The aggregated costs: a volume per direction, or the sums.
     volumes: wgpu::Buffer,
     census_bg: wgpu::BindGroup,
+    cost_bg: wgpu::BindGroup,
     aggregate_bg: wgpu::BindGroup,
     select_bg: wgpu::BindGroup,
     median_bg: wgpu::BindGroup,
     /// Speckle bind groups of the five entry points, on the median's output and on the
     /// selection's (median off).
     speckle_bg: [Vec<wgpu::BindGroup>; 2],
+    /// The final map's bits (NaN where invalid), copied to `staging`.
+    bits: wgpu::Buffer,
+    /// `finish` on the median's output and on the selection's.
+    finish_bg: [wgpu::BindGroup; 2],
     _keep: Vec<wgpu::Buffer>,
+}
+
+/// A bind group of `entries` (binding, buffer) of group 0 of `pipeline`, for entry points whose
+/// automatic layout holds only some of their module's bindings.
+fn bind_some(
+    dev: &wgpu::Device,
+    pipeline: &wgpu::ComputePipeline,
+    entries: &[(u32, &wgpu::Buffer)],
+) -> wgpu::BindGroup {
+    let entries: Vec<wgpu::BindGroupEntry> = entries
+        .iter()
+        .map(|&(binding, b)| wgpu::BindGroupEntry {
+            binding,
+            resource: b.as_entire_binding(),
+        })
+        .collect();
+    dev.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("sgm"),
+        layout: &pipeline.get_bind_group_layout(0),
+        entries: &entries,
+    })
 }
 
 struct Timestamps {
@@ -271,12 +304,14 @@ struct Timestamps {
 }
 
 /// Query slots: a begin and an end per stage.
-const STAGES: u32 = 5;
+const STAGES: u32 = 6;
 
 /// The compiled SGM kernels and their buffers.
 pub struct SgmGpu {
     census: wgpu::ComputePipeline,
+    cost: wgpu::ComputePipeline,
     median: wgpu::ComputePipeline,
+    finish: wgpu::ComputePipeline,
     speckle: Vec<wgpu::ComputePipeline>,
     specialised: HashMap<(Layout, u32), (wgpu::ComputePipeline, wgpu::ComputePipeline)>,
     frame: Option<Frame>,
@@ -324,7 +359,9 @@ impl SgmGpu {
             });
         SgmGpu {
             census: ctx.compute_pipeline("sgm census", CENSUS_WGSL, "main"),
+            cost: ctx.compute_pipeline("sgm cost", CENSUS_WGSL, "cost"),
             median: ctx.compute_pipeline("sgm median", MEDIAN_WGSL, "main"),
+            finish: ctx.compute_pipeline("sgm finish", MEDIAN_WGSL, "finish"),
             speckle: SPECKLE_ENTRIES
                 .iter()
                 .map(|e| ctx.compute_pipeline(&format!("sgm speckle {e}"), SPECKLE_WGSL, e))
@@ -364,13 +401,21 @@ impl SgmGpu {
             &constants,
         )?;
         let (sel_bytes, sel_dirs) = l.selected(dirs);
+        let mut constants = vec![
+            ("BYTES", sel_bytes),
+            ("DIRS", sel_dirs),
+            ("THREADS", SELECT_THREADS),
+        ];
+        // The selection reads a pixel per cluster where the aggregation used subgroups.
+        let kernel = if l.lanes > 0 {
+            constants.push(("LANES", l.lanes));
+            SELECT_SUBGROUP_WGSL
+        } else {
+            SELECT_WGSL
+        };
         let sel = specialise(
-            SELECT_WGSL,
-            &[
-                ("BYTES", sel_bytes),
-                ("DIRS", sel_dirs),
-                ("THREADS", SELECT_THREADS),
-            ],
+            &wgsl_with_uses(kernel, &[("sgm_select_common.wgsl", SELECT_COMMON_WGSL)])?,
+            &constants,
         )?;
         let pipelines = (
             ctx.compute_pipeline("sgm aggregate", &agg, "main"),
@@ -404,6 +449,8 @@ impl SgmGpu {
         let images = buffer("sgm images", 8 * image_words, U::STORAGE | U::COPY_DST);
         let mask = buffer("sgm mask", 4 * image_words, U::STORAGE | U::COPY_DST);
         let codes = buffer("sgm census", 2 * px * 8, U::STORAGE);
+        // The matching costs, a byte per disparity (the aggregation's dp per pixel).
+        let costs = buffer("sgm costs", px * u64::from(l.dp()), U::STORAGE);
         // The aggregated costs (the sums are cleared before each pair), and a placeholder for the
         // aggregation's binding the layout does not use.
         let volumes = buffer(
@@ -421,9 +468,10 @@ impl SgmGpu {
         let out = buffer("sgm median", px * 4, U::STORAGE | U::COPY_SRC);
         let parent = buffer("sgm speckle parent", px * 4, U::STORAGE);
         let size = buffer("sgm speckle size", px * 4, U::STORAGE);
+        let bits = buffer("sgm bits", px * 4, U::STORAGE | U::COPY_SRC);
         let staging = buffer("sgm readback", px * 4, U::MAP_READ | U::COPY_DST);
         let uniform = |label: &str, bytes: u64| buffer(label, bytes, U::UNIFORM | U::COPY_DST);
-        let census_u = uniform("sgm census params", 32);
+        let census_u = uniform("sgm census params", 48);
         let aggregate_u = uniform("sgm aggregate params", 48 + 8 * 16);
         let select_u = uniform("sgm select params", 48);
         let median_u = uniform("sgm median params", 16);
@@ -433,10 +481,11 @@ impl SgmGpu {
         };
         let (agg, sel) = &self.specialised[&(l, dirs as u32)];
         let census_bg = bind("sgm census", &self.census, &[&census_u, &images, &codes]);
+        let cost_bg = bind_some(dev, &self.cost, &[(0, &census_u), (2, &codes), (3, &costs)]);
         let aggregate_bg = bind(
             "sgm aggregate",
             agg,
-            &[&aggregate_u, &images, &codes, per_direction, sums],
+            &[&aggregate_u, &images, &costs, per_direction, sums],
         );
         let select_bg = bind("sgm select", sel, &[&select_u, &volumes, &mask, &disp]);
         let median_bg = bind("sgm median", &self.median, &[&median_u, &disp, &out]);
@@ -453,20 +502,17 @@ impl SgmGpu {
                         "flatten" => &[0, 2],
                         _ => &[0, 1, 2, 3],
                     };
-                    let entries: Vec<wgpu::BindGroupEntry> = used
-                        .iter()
-                        .map(|&b| wgpu::BindGroupEntry {
-                            binding: b,
-                            resource: all[b as usize].as_entire_binding(),
-                        })
-                        .collect();
-                    dev.create_bind_group(&wgpu::BindGroupDescriptor {
-                        label: Some("sgm speckle"),
-                        layout: &pl.get_bind_group_layout(0),
-                        entries: &entries,
-                    })
+                    let entries: Vec<_> = used.iter().map(|&b| (b, all[b as usize])).collect();
+                    bind_some(dev, pl, &entries)
                 })
                 .collect()
+        });
+        let finish_bg = [&out, &disp].map(|result| {
+            bind_some(
+                dev,
+                &self.finish,
+                &[(0, &median_u), (1, result), (3, &bits)],
+            )
         });
         self.frame = Some(Frame {
             w,
@@ -475,10 +521,9 @@ impl SgmGpu {
             layout: l,
             images,
             mask,
-            disp,
-            out,
             staging,
             census_u,
+            cost_bg,
             aggregate_u,
             select_u,
             median_u,
@@ -488,8 +533,10 @@ impl SgmGpu {
             select_bg,
             median_bg,
             speckle_bg,
+            bits,
+            finish_bg,
             volumes,
-            _keep: vec![codes, placeholder, parent, size],
+            _keep: vec![codes, costs, placeholder, parent, size, disp, out],
         });
     }
 
@@ -586,6 +633,10 @@ impl SgmGpu {
                 p.census_width / 2,
                 p.census_height / 2,
                 right_words,
+                p.max_disparity,
+                p.min_disparity as u32,
+                u32::from(p.unknown_cost()),
+                layout.dp(),
                 0,
                 0,
                 0,
@@ -663,7 +714,14 @@ impl SgmGpu {
             (u32, u32, u32),
         );
         let mut stages: Vec<Vec<Job>> = vec![
-            vec![(&self.census, &f.census_bg, (tiles8.0, tiles8.1, 2))],
+            vec![
+                (&self.census, &f.census_bg, (tiles8.0, tiles8.1, 2)),
+                (
+                    &self.cost,
+                    &f.cost_bg,
+                    ((wu * layout.dp() / 4).div_ceil(64), hu, 1),
+                ),
+            ],
             vec![(
                 agg,
                 &f.aggregate_bg,
@@ -672,6 +730,11 @@ impl SgmGpu {
             vec![(sel, &f.select_bg, (hu, 1, 1))],
             Vec::new(),
             Vec::new(),
+            vec![(
+                &self.finish,
+                &f.finish_bg[usize::from(!p.median)],
+                (tiles8.0, tiles8.1, 1),
+            )],
         ];
         if p.median {
             stages[3].push((&self.median, &f.median_bg, (tiles8.0, tiles8.1, 1)));
@@ -681,7 +744,6 @@ impl SgmGpu {
                 stages[4].push((pl, bg, (tiles16.0, tiles16.1, 1)));
             }
         }
-        let result = if p.median { &f.out } else { &f.disp };
         let bytes = (w * h * 4) as u64;
         let ts = if self.staged {
             None
@@ -720,7 +782,7 @@ impl SgmGpu {
                 enc = ctx.device.create_command_encoder(&Default::default());
             }
         }
-        enc.copy_buffer_to_buffer(result, 0, &f.staging, 0, bytes);
+        enc.copy_buffer_to_buffer(&f.bits, 0, &f.staging, 0, bytes);
         if let Some(t) = ts {
             enc.resolve_query_set(&t.set, 0..2 * STAGES, &t.resolve, 0);
             enc.copy_buffer_to_buffer(&t.resolve, 0, &t.read, 0, u64::from(2 * STAGES) * 8);
@@ -755,17 +817,8 @@ impl SgmGpu {
                     .get_mapped_range()
                     .map_err(|e| e.to_string())?;
                 if k == 0 {
-                    d = view[..bytes as usize]
-                        .chunks_exact(4)
-                        .map(|b| {
-                            let v = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
-                            if v <= INVALID {
-                                f32::NAN
-                            } else {
-                                v
-                            }
-                        })
-                        .collect();
+                    // NaN where invalid already (`finish`): a plain copy.
+                    d = bytemuck::pod_collect_to_vec(&view[..bytes as usize]);
                 } else {
                     stamps = view
                         .chunks_exact(8)
@@ -794,6 +847,7 @@ impl SgmGpu {
             timing.select_ms,
             timing.median_ms,
             timing.speckle_ms,
+            timing.finish_ms,
         ] = stage_ms;
         timing.readback_ms = (after_submit - kernels).max(0.0);
         timing.summed_volumes = layout.summed;
@@ -819,8 +873,12 @@ mod tests {
             assert!(src.contains("const THREADS: u32 = 36u;"));
             assert!(src.contains("const BYTES: u32 = 2u;"));
         }
-        let sel = specialise(SELECT_WGSL, &[("BYTES", 1), ("DIRS", 4), ("THREADS", 64)]).unwrap();
-        assert!(sel.contains("const DIRS: u32 = 4u;"));
+        let uses = [("sgm_select_common.wgsl", SELECT_COMMON_WGSL)];
+        for kernel in [SELECT_WGSL, SELECT_SUBGROUP_WGSL] {
+            let src = wgsl_with_uses(kernel, &uses).unwrap();
+            let sel = specialise(&src, &[("BYTES", 1), ("DIRS", 4), ("THREADS", 64)]).unwrap();
+            assert!(sel.contains("const DIRS: u32 = 4u;"));
+        }
         let err = specialise(SELECT_WGSL, &[("PER", 4)]).unwrap_err();
         assert!(err.contains("PER"), "{err}");
     }
