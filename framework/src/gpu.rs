@@ -173,6 +173,11 @@ impl GpuContext {
             .then_some(info.subgroup_min_size)
     }
 
+    /// True on a discrete GPU (not an integrated, virtual or software adapter).
+    pub fn is_discrete(&self) -> bool {
+        self.adapter_info.device_type == wgpu::DeviceType::DiscreteGpu
+    }
+
     /// Compiles a WGSL compute shader into a pipeline with an automatic layout.
     pub fn compute_pipeline(&self, label: &str, wgsl: &str, entry: &str) -> wgpu::ComputePipeline {
         let module = self

@@ -3,7 +3,7 @@
 // store in `sgm_paths.wgsl`), for any adapter: a workgroup walks PATHS neighbouring paths of one
 // direction side by side, THREADS invocations per path. Per pixel, the invocations of a path
 // exchange their lowest and highest L and their minimum through double-buffered workgroup
-// memory: one barrier per pixel. The costs of the next pixel are loaded before the
+// memory: one barrier per pixel. The census codes of the next pixel are loaded before the
 // barrier, so their latency hides behind it. `sgm_aggregate_subgroup.wgsl` does the same
 // exchange by subgroup shuffles, without barriers, where the adapter has subgroups.
 // The host specialises PATHS (and the shared constants).
@@ -45,20 +45,23 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid
     }
     var gray_prev = 0u;
     var prev = vec4<u32>(BIG);
-    // Costs of the pixel about to be aggregated.
-    var word = 0u;
+    // Census codes of the pixel about to be aggregated.
+    var code = vec2<u32>(0u);
+    var right = Right(vec4<u32>(0u), vec4<u32>(0u));
     if (len > 0u) {
-        word = cost_word(p, t);
+        code = codes[u32(p.y) * params.width + u32(p.x)];
+        right = right_codes(p, d0);
     }
     var buf = 0u;
     for (var step = 0u; step < steps; step = step + 1u) {
         if (step < len) {
             let i = u32(p.y) * params.width + u32(p.x);
-            var cur = unpack(word);
-            // The next pixel's costs, used after the barrier.
+            var cur = cost(p, d, code, right);
+            // The next pixel's codes, used after the barrier.
             let q = p + vec2<i32>(dx, dy);
             if (step + 1u < len) {
-                word = cost_word(q, t);
+                code = codes[u32(q.y) * params.width + u32(q.x)];
+                right = right_codes(q, d0);
             }
             var g = 0u;
             if (params.p2_adaptive != 0u) {

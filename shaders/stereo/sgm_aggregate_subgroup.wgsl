@@ -59,10 +59,12 @@ fn main(
     }
     var gray_prev = 0u;
     var prev = vec4<u32>(BIG);
-    // Costs of the pixel about to be aggregated.
-    var word = 0u;
+    // Census codes of the pixel about to be aggregated.
+    var code = vec2<u32>(0u);
+    var right = Right(vec4<u32>(0u), vec4<u32>(0u));
     if (len > 0u && holds) {
-        word = cost_word(p, t);
+        code = codes[u32(p.y) * params.width + u32(p.x)];
+        right = right_codes(p, d0);
     }
     for (var step = 0u; step < steps; step = step + 1u) {
         // The previous pixel's exchange: the cluster's minimum and the neighbours' L at d0 - 1
@@ -72,11 +74,12 @@ fn main(
         let from_above = subgroupShuffleDown(prev.x, 1u);
         if (step < len) {
             let i = u32(p.y) * params.width + u32(p.x);
-            var cur = unpack(word);
-            // The next pixel's costs, loaded a step ahead.
+            var cur = cost(p, d, code, right);
+            // The next pixel's codes, loaded a step ahead.
             let q = p + vec2<i32>(dx, dy);
             if (step + 1u < len && holds) {
-                word = cost_word(q, t);
+                code = codes[u32(q.y) * params.width + u32(q.x)];
+                right = right_codes(q, d0);
             }
             var g = 0u;
             if (params.p2_adaptive != 0u) {

@@ -1,11 +1,7 @@
-// SGM step 1: census transform of the left and the right image (entry point `main`, gid.z = 0,
-// 1), one invocation per pixel, then the matching costs (entry point `cost`). CPU reference:
-// misslam_depth_sgm::sgm::census. Bit k of the window (row by row, the centre skipped) lands at
-// bit n - 1 - k of the 64-bit code, kept as (hi, lo) u32 halves; a neighbour outside the image
-// counts as equal to the centre (bit 0). The cost of disparity d at pixel (x, y) is the Hamming
-// distance of the left code and the right one at x - d - dmin, or `unknown` where that leaves
-// the image, as a byte, DP per pixel (four to a word, padding disparities 0): each
-// aggregation direction reads them instead of recomputing them.
+// SGM step 1: census transform of the left and the right image (gid.z = 0, 1), one invocation
+// per pixel. CPU reference: misslam_depth_sgm::sgm::census. Bit k of the window (row by row, the
+// centre skipped) lands at bit n - 1 - k of the 64-bit code, kept as (hi, lo) u32 halves; a
+// neighbour outside the image counts as equal to the centre (bit 0).
 
 struct Params {
     width: u32,
@@ -14,11 +10,6 @@ struct Params {
     radius_y: u32,
     // Word offset of the right image in `images`.
     right_words: u32,
-    disparities: u32,
-    min_disparity: i32,
-    unknown: u32,
-    // Disparities per pixel in the cost volume (a multiple of 4).
-    dp: u32,
     pad0: u32,
     pad1: u32,
     pad2: u32,
@@ -64,35 +55,4 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
     }
     codes[gid.z * w * h + gid.y * w + gid.x] = vec2<u32>(hi, lo);
-}
-
-// Costs of one row (gid.y), one word (four disparities) per invocation.
-@group(0) @binding(3) var<storage, read_write> costs: array<u32>;
-
-@compute @workgroup_size(64, 1, 1)
-fn cost(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let w = params.width;
-    let per_pixel = params.dp / 4u;
-    if (gid.x >= w * per_pixel || gid.y >= params.height) {
-        return;
-    }
-    let x = gid.x / per_pixel;
-    let d0 = 4u * (gid.x % per_pixel);
-    let left = codes[gid.y * w + x];
-    let right_row = w * params.height + gid.y * w;
-    var word = 0u;
-    for (var k = 0u; k < 4u; k = k + 1u) {
-        let d = d0 + k;
-        var c = 0u;
-        if (d < params.disparities) {
-            let xr = i32(x) - i32(d) - params.min_disparity;
-            c = params.unknown;
-            if (xr >= 0 && xr < i32(w)) {
-                let r = codes[right_row + u32(xr)];
-                c = countOneBits(left.x ^ r.x) + countOneBits(left.y ^ r.y);
-            }
-        }
-        word = word | (c << (8u * k));
-    }
-    costs[(gid.y * w + x) * per_pixel + d0 / 4u] = word;
 }

@@ -15,9 +15,8 @@
 //   L(p, d) = C(p, d) + min(L(p-r, d), L(p-r, d-1) + P1, L(p-r, d+1) + P1, min_k L(p-r, k) + P2)
 //             - min_k L(p-r, k),     L = C at the path's first pixel,
 // with C the Hamming distance of the census codes (or `unknown` when x - d - dmin leaves the
-// right image; bytes from the census kernel's `cost`, 4 * THREADS per pixel) and P2 divided by
-// the intensity step when `p2_adaptive` is set. L <= C + P2, so the host picks BYTES = 1 when
-// the largest C plus P2 fits a byte.
+// right image) and P2 divided by the intensity step when `p2_adaptive` is set. L <= C + P2, so
+// the host picks BYTES = 1 when the largest C plus P2 fits a byte.
 // The host places a kernel after this file and specialises THREADS, BYTES and SUMMED (and the
 // kernel's own constants) by their lines `const NAME: u32 = ...;`.
 
@@ -56,8 +55,8 @@ const BIG: u32 = 0x3fffffffu;
 @group(0) @binding(0) var<uniform> params: Params;
 // Gray levels, four per word (little-endian), of the left image.
 @group(0) @binding(1) var<storage, read> images: array<u32>;
-// The matching costs C, a byte per disparity, 4 * THREADS per pixel (THREADS words).
-@group(0) @binding(2) var<storage, read> costs: array<u32>;
+// (hi, lo) census code per pixel, the left image then the right one.
+@group(0) @binding(2) var<storage, read> codes: array<vec2<u32>>;
 @group(0) @binding(3) var<storage, read_write> volumes: array<u32>;
 // The volume of sums (SUMMED = 1); a placeholder otherwise.
 @group(0) @binding(4) var<storage, read_write> sums: array<atomic<u32>>;
@@ -124,14 +123,37 @@ fn longest(first: u32, count: u32, paths: u32, dx: i32, dy: i32) -> u32 {
     return steps;
 }
 
-// The cost word of pixel p for invocation t: C at d = 4t .. 4t + 3, a byte each.
-fn cost_word(p: vec2<i32>, t: u32) -> u32 {
-    return costs[(u32(p.y) * params.width + u32(p.x)) * THREADS + t];
+struct Right {
+    hi: vec4<u32>,
+    lo: vec4<u32>,
 }
 
-// The four costs of a word.
-fn unpack(word: u32) -> vec4<u32> {
-    return (vec4<u32>(word) >> vec4<u32>(0u, 8u, 16u, 24u)) & vec4<u32>(0xffu);
+// Census codes of the right image at x - d - dmin for d = d0 .. d0 + 3 (clamped into the image;
+// the range is checked where they are used).
+fn right_codes(q: vec2<i32>, d0: u32) -> Right {
+    let row = params.width * params.height + u32(q.y) * params.width;
+    let xr = clamp(
+        vec4<i32>(q.x - params.min_disparity) - vec4<i32>(vec4<u32>(d0) + vec4<u32>(0u, 1u, 2u, 3u)),
+        vec4<i32>(0),
+        vec4<i32>(i32(params.width) - 1),
+    );
+    let c0 = codes[row + u32(xr.x)];
+    let c1 = codes[row + u32(xr.y)];
+    let c2 = codes[row + u32(xr.z)];
+    let c3 = codes[row + u32(xr.w)];
+    return Right(vec4<u32>(c0.x, c1.x, c2.x, c3.x), vec4<u32>(c0.y, c1.y, c2.y, c3.y));
+}
+
+// C at pixel p for the disparities d: the Hamming distance of the codes, or `unknown` where
+// x - d - dmin leaves the right image.
+fn cost(p: vec2<i32>, d: vec4<u32>, code: vec2<u32>, right: Right) -> vec4<u32> {
+    let xr = vec4<i32>(p.x - params.min_disparity) - vec4<i32>(d);
+    let inside = (xr >= vec4<i32>(0)) & (xr < vec4<i32>(i32(params.width)));
+    return select(
+        vec4<u32>(params.unknown),
+        countOneBits(vec4<u32>(code.x) ^ right.hi) + countOneBits(vec4<u32>(code.y) ^ right.lo),
+        inside,
+    );
 }
 
 // P2 between gray levels g_prev and g (divided by the step when `p2_adaptive` is set).

@@ -1,4 +1,3 @@
-// uses: sgm_select_common.wgsl
 // SGM step 3: winner-takes-all of the summed directions, one workgroup per image row. Each
 // invocation takes the pixels x = t, t + THREADS, ... and walks their disparities once, summing
 // the directions' volumes four (u8) or two (u16) disparities per word, and keeps:
@@ -15,6 +14,39 @@
 // The host specialises BYTES (as the aggregation kernel's), DIRS and THREADS. The volumes are
 // read 16 bytes at a time; the per-disparity work is a function on a struct (no arrays, so the
 // GPU keeps the state in registers).
+
+struct Params {
+    width: u32,
+    height: u32,
+    disparities: u32,
+    min_disparity: i32,
+    uniqueness_pct: u32,
+    subpixel: u32,
+    lr_check: u32,
+    lr_max_diff: f32,
+    dirs: u32,
+    // Disparities per pixel in the volumes (the aggregation's THREADS * PER).
+    dp: u32,
+    volume_words: u32,
+    // 1 when `mask` holds a mask (four bytes per word), 0 when every pixel may get a disparity.
+    masked: u32,
+}
+
+// Marks an invalid pixel (NaN on the host).
+const INVALID: f32 = -3.0e38;
+const NONE: u32 = 0xffffffffu;
+const BYTES: u32 = 1u;
+const DIRS: u32 = 8u;
+const THREADS: u32 = 128u;
+// Widest row (the right winners live in workgroup memory).
+const MAX_W: u32 = 4096u;
+
+@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(1) var<storage, read> volumes: array<vec4<u32>>;
+@group(0) @binding(2) var<storage, read> mask: array<u32>;
+@group(0) @binding(3) var<storage, read_write> disparity: array<f32>;
+
+var<workgroup> right_key: array<atomic<u32>, MAX_W>;
 
 // Sums of the directions' volumes at 16-byte block `at` of every direction, the disparities
 // of each word in 16-bit lanes: for bytes (a: lanes 0 and 2, b: lanes 1 and 3), for u16
@@ -68,7 +100,10 @@ fn visit(s: ptr<function, Wta>, v: u32, d: u32) {
     if (d == (*s).bd + 1u) {
         (*s).after_best = v;
     }
-    right_candidate((*s).x, v, d);
+    let xr = i32((*s).x) - i32(d) - params.min_disparity;
+    if (xr >= 0 && xr < i32(params.width)) {
+        atomicMin(&right_key[u32(xr)], (v << 11u) | d);
+    }
     if (d >= 1u) {
         (*s).below = min((*s).below, (*s).last);
     }
@@ -97,7 +132,9 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid
     // Disparities per word and per 16-byte block.
     let per_word = 4u / BYTES;
     let per_block = 4u * per_word;
-    clear_right(t);
+    for (var x = t; x < w; x = x + THREADS) {
+        atomicStore(&right_key[x], NONE);
+    }
     workgroupBarrier();
     for (var x = t; x < w; x = x + THREADS) {
         let i = y * w + x;
@@ -112,10 +149,52 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid
             visit_word(&s, sum.a.z, sum.b.z, d + 2u * per_word);
             visit_word(&s, sum.a.w, sum.b.w, d + 3u * per_word);
         }
-        disparity[i] = output(i, s.best, s.bd, s.second, s.before_best, s.after_best);
+        var out = INVALID;
+        var allowed = true;
+        if (params.masked != 0u) {
+            allowed = ((mask[i >> 2u] >> ((i & 3u) * 8u)) & 0xffu) != 0u;
+        }
+        if (allowed && s.best * (100u + params.uniqueness_pct) <= s.second * 100u) {
+            var disp = f32(s.bd);
+            if (params.subpixel != 0u && s.bd > 0u && s.bd + 1u < nd) {
+                let a = f32(s.before_best);
+                let b = f32(s.best);
+                let c = f32(s.after_best);
+                let den = a - 2.0 * b + c;
+                if (den > 0.0) {
+                    disp = disp + 0.5 * (a - c) / den;
+                }
+            }
+            out = disp + f32(params.min_disparity);
+        }
+        disparity[i] = out;
     }
     workgroupBarrier();
-    if (params.lr_check != 0u) {
-        lr_check(y, t);
+    if (params.lr_check == 0u) {
+        return;
+    }
+    for (var x = t; x < w; x = x + THREADS) {
+        let i = y * w + x;
+        var out = disparity[i];
+        if (out == INVALID) {
+            continue;
+        }
+        // Rust's f32::round: half away from zero; -0.5 and below leave the image.
+        let r = f32(x) - out;
+        if (r <= -0.5) {
+            out = INVALID;
+        } else {
+            let xr = i32(floor(r + 0.5));
+            if (xr >= i32(w)) {
+                out = INVALID;
+            } else {
+                let key = atomicLoad(&right_key[u32(xr)]);
+                if (key == NONE
+                    || abs(f32(key & 0x7ffu) + f32(params.min_disparity) - out) > params.lr_max_diff) {
+                    out = INVALID;
+                }
+            }
+        }
+        disparity[i] = out;
     }
 }
