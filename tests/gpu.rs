@@ -218,22 +218,31 @@ fn sgm_kernels_match_the_cpu_path() {
                 w * h
             );
             assert!(max_diff <= 1e-4, "{name}: max |diff| {max_diff} px");
-            // The directions' costs summed into one volume (atomic adds) give the same output.
-            let summed = SgmParams {
-                gpu_volumes: GpuVolumes::Summed,
-                ..*p
-            };
-            let (got_summed, t) = kernels.run(&ctx, &left, &right, w, h, m, &summed).unwrap();
-            assert!(t.summed_volumes && !timing.summed_volumes, "{name}");
+            // The directions' costs summed into one volume (atomic adds) and a volume per
+            // direction give the same output ("auto" took one of them).
             let same = |a: &[f32]| {
                 a.iter()
                     .zip(&got)
                     .all(|(a, b)| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan()))
             };
-            assert!(
-                same(&got_summed),
-                "{name}: summed volumes differ from the per-direction ones"
-            );
+            let mut t = timing;
+            for summed in [false, true] {
+                let q = SgmParams {
+                    gpu_volumes: if summed {
+                        GpuVolumes::Summed
+                    } else {
+                        GpuVolumes::PerDirection
+                    },
+                    ..*p
+                };
+                let (got_layout, tl) = kernels.run(&ctx, &left, &right, w, h, m, &q).unwrap();
+                assert_eq!(tl.summed_volumes, summed, "{name}");
+                assert!(
+                    same(&got_layout),
+                    "{name}: the layout (summed {summed}) changes the output"
+                );
+                t = tl;
+            }
             // The exchange through workgroup memory gives the same output as the subgroup one
             // the adapter's subgroups allow ("auto"), in both layouts.
             subgroup_runs += usize::from(timing.subgroups) + usize::from(t.subgroups);
