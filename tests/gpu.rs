@@ -126,7 +126,7 @@ fn stereo_scene(w: usize, h: usize, seed: u64) -> (Vec<u8>, Vec<u8>) {
 
 #[test]
 fn sgm_kernels_match_the_cpu_path() {
-    use misslam_depth_sgm::gpu::SgmGpu;
+    use misslam_depth_sgm::gpu::{Breakdown, SgmGpu};
     use misslam_depth_sgm::sgm::{sgm, GpuExchange, GpuVolumes, Scratch, SgmParams};
     let Some(ctx) = gpu() else { return };
     let mut kernels = SgmGpu::new(&ctx);
@@ -242,6 +242,19 @@ fn sgm_kernels_match_the_cpu_path() {
                     "{name}: the layout (summed {summed}) changes the output"
                 );
                 t = tl;
+            }
+            // Timing the stages (a pass per stage, timestamps or each stage waited for) changes
+            // nothing but the timing; untimed runs report no stages.
+            assert_eq!(timing.aggregate_ms, 0.0, "{name}: untimed");
+            for breakdown in [Breakdown::Timestamps, Breakdown::Staged] {
+                kernels.set_breakdown(breakdown);
+                let (got_timed, tt) = kernels.run(&ctx, &left, &right, w, h, m, p).unwrap();
+                kernels.set_breakdown(Breakdown::Off);
+                assert!(same(&got_timed), "{name}: {breakdown:?} changes the output");
+                assert!(
+                    tt.aggregate_ms > 0.0 && tt.select_ms > 0.0,
+                    "{name}: {breakdown:?} {tt:?}"
+                );
             }
             // The exchange through workgroup memory gives the same output as the subgroup one
             // the adapter's subgroups allow ("auto"), in both layouts.

@@ -179,14 +179,14 @@ pub struct SgmGpuBench {
     pub paths: u32,
     /// Timed runs (after one warm-up run).
     pub runs: usize,
-    /// Median wall time of one pair on the GPU, upload, every kernel, readback and the CPU's
-    /// speckle removal included (no wait between the stages), ms.
+    /// Median wall time of one pair on the GPU as the node runs it (every kernel in one pass,
+    /// untimed), upload and readback included, ms.
     pub gpu_ms: f64,
     /// Fastest of the same runs, ms.
     pub gpu_min_ms: f64,
-    /// Median of each stage, ms: from GPU timestamps over the same runs where the adapter has
-    /// them, else over separate runs in which every stage is waited for (so their sum is above
-    /// `gpu_ms`).
+    /// Median of each stage, ms, over runs of their own: from GPU timestamps where the adapter
+    /// has them (a pass per stage, so their `total_ms` is a little above `gpu_ms`), else with
+    /// every stage waited for (their sum well above `gpu_ms`).
     pub stages_ms: misslam_depth_sgm::gpu::SgmGpuTiming,
     /// Median wall time of the CPU path ([`misslam_depth_sgm::sgm::sgm`]) on the same pair, with
     /// the threads rayon has, ms.
@@ -252,7 +252,7 @@ pub fn sgm_gpu(
     p: &misslam_depth_sgm::sgm::SgmParams,
     repeat: usize,
 ) -> Result<SgmGpuBench, String> {
-    use misslam_depth_sgm::gpu::{SgmGpu, SgmGpuTiming};
+    use misslam_depth_sgm::gpu::{Breakdown, SgmGpu, SgmGpuTiming};
     use misslam_depth_sgm::sgm::{sgm, Scratch};
     let (w, h, left, right) = sgm_pair(pair, size, p.max_disparity)?;
     let ctx = misslam_framework::gpu::GpuProvider::new()
@@ -265,25 +265,23 @@ pub fn sgm_gpu(
     let (got, _) = run(&mut kernels)?;
     let mut totals = Vec::new();
     let mut gpu_out = got;
-    let mut stages: Vec<SgmGpuTiming> = Vec::new();
+    // The node's way, untimed stages in one pass.
     let gpu_ms = median_ms(repeat, || {
         let t = Instant::now();
-        let (d, timing) = run(&mut kernels)?;
+        let (d, _) = run(&mut kernels)?;
         totals.push(t.elapsed().as_secs_f64() * 1e3);
         gpu_out = d;
-        stages.push(timing);
         Ok::<(), String>(())
     })?;
     let gpu_min_ms = totals.iter().copied().fold(f64::INFINITY, f64::min);
-    if !stages.iter().all(|t| t.gpu_timestamps) {
-        // No timestamps: time each stage on its own.
-        kernels.set_staged(true);
-        stages.clear();
-        for _ in 0..repeat.max(1) {
-            stages.push(run(&mut kernels)?.1);
-        }
-        kernels.set_staged(false);
+    // The breakdown, in runs of their own: timestamps where the adapter has them, else each
+    // stage waited for.
+    kernels.set_breakdown(Breakdown::Timestamps);
+    let mut stages: Vec<SgmGpuTiming> = Vec::new();
+    for _ in 0..repeat.max(1) {
+        stages.push(run(&mut kernels)?.1);
     }
+    kernels.set_breakdown(Breakdown::Off);
     let med = |f: &dyn Fn(&SgmGpuTiming) -> f64| median(stages.iter().map(f).collect());
     let stages_ms = SgmGpuTiming {
         upload_ms: med(&|t| t.upload_ms),

@@ -78,9 +78,9 @@ pub struct SgmGpuTiming {
     pub convert_ms: f64,
     /// Everything, from the gray images to the disparity map (wall time).
     pub total_ms: f64,
-    /// True when the kernels' times come from GPU timestamps, false when each stage was
-    /// submitted and waited for on its own ([`SgmGpu::set_staged`]), which adds each
-    /// submission's latency.
+    /// True when the kernels' times come from GPU timestamps; false when each stage was
+    /// submitted and waited for on its own, which adds each submission's latency, or when the
+    /// stages were not timed (the stage fields are then 0; see [`SgmGpu::set_breakdown`]).
     pub gpu_timestamps: bool,
     /// True when the directions' costs were summed into one volume (`gpu_volumes`).
     pub summed_volumes: bool,
@@ -312,6 +312,20 @@ struct Timestamps {
 /// Query slots: a begin and an end per stage.
 const STAGES: u32 = 6;
 
+/// Whether and how [`SgmGpu::run`] times its stages.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Breakdown {
+    /// Not at all: every kernel in one compute pass (the fastest; the node's setting).
+    #[default]
+    Off,
+    /// A compute pass per stage with GPU timestamps, where the adapter has them (else as
+    /// `Staged`).
+    Timestamps,
+    /// Each stage submitted and waited for on its own, timed by the wall clock (at the cost of
+    /// the overlap).
+    Staged,
+}
+
 /// The compiled SGM kernels and their buffers.
 pub struct SgmGpu {
     census: wgpu::ComputePipeline,
@@ -321,7 +335,7 @@ pub struct SgmGpu {
     specialised: HashMap<(Layout, u32), (wgpu::ComputePipeline, wgpu::ComputePipeline)>,
     frame: Option<Frame>,
     timestamps: Option<Timestamps>,
-    staged: bool,
+    breakdown: Breakdown,
     /// The upload's bytes, reused.
     host: Vec<u8>,
 }
@@ -373,15 +387,14 @@ impl SgmGpu {
             specialised: HashMap::new(),
             frame: None,
             timestamps,
-            staged: false,
+            breakdown: Breakdown::Off,
             host: Vec::new(),
         }
     }
 
-    /// Submits and waits for each stage on its own to time it by the wall clock (the timing's
-    /// stage fields where the adapter has no timestamps), at the cost of the overlap.
-    pub fn set_staged(&mut self, staged: bool) {
-        self.staged = staged;
+    /// Whether and how the following runs time their stages (the timing's stage fields).
+    pub fn set_breakdown(&mut self, breakdown: Breakdown) {
+        self.breakdown = breakdown;
     }
 
     fn pipelines(&mut self, ctx: &GpuContext, l: Layout, dirs: u32) -> Result<(), String> {
@@ -731,11 +744,16 @@ impl SgmGpu {
             }
         }
         let bytes = (w * h * 4) as u64;
-        let ts = if self.staged {
-            None
-        } else {
-            self.timestamps.as_ref()
+        let ts = match self.breakdown {
+            Breakdown::Timestamps => self.timestamps.as_ref(),
+            Breakdown::Off | Breakdown::Staged => None,
         };
+        let staged = self.breakdown == Breakdown::Staged
+            || (self.breakdown == Breakdown::Timestamps && ts.is_none());
+        if self.breakdown == Breakdown::Off {
+            // Untimed: every kernel in one pass (wgpu orders the dispatches by their buffers).
+            stages = vec![stages.concat()];
+        }
         let mut stage_ms = [0.0f64; STAGES as usize];
         let mut enc = ctx.device.create_command_encoder(&Default::default());
         if layout.summed {
@@ -761,7 +779,7 @@ impl SgmGpu {
                     pass.dispatch_workgroups(*x, *y, *z);
                 }
             }
-            if self.staged {
+            if staged {
                 q.submit(Some(enc.finish()));
                 ctx.wait().map_err(gpu)?;
                 stage_ms[k] = lap.elapsed().as_secs_f64() * 1e3;
