@@ -2,10 +2,12 @@
 // (Playne and Hawick, "A new algorithm for parallel connected-component labelling on GPUs",
 // IEEE TPDS 2018). Two valid 4-neighbours are joined when their disparities differ by at most
 // `range`; every valid pixel of a component smaller than `window` pixels becomes invalid.
-// Five entry points, dispatched in order over 16x16 tiles:
-//   init     parent(i) = i, size(i) = 0;
-//   merge    joins each valid pixel with its right and lower neighbour (atomicMin hooks the
-//            larger root under the smaller, so parent(i) <= i and every find terminates);
+// Five entry points, dispatched in order over 16x16 tiles (one workgroup each):
+//   local    the components within each tile, by the same union-find in workgroup memory;
+//            parent(i) = the pixel of its tile component's root, size(i) = 0;
+//   merge    joins the pixels on a tile's right and lower edge with their neighbour in the next
+//            tile (atomicMin hooks the larger root under the smaller: a tile's local order is
+//            the image's, so parent(i) <= i holds throughout and every find terminates);
 //   flatten  parent(i) = root of i;
 //   count    size(root) += 1 per valid pixel (summed per tile for the tile's smallest root);
 //   apply    invalidates the pixels of small components.
@@ -74,30 +76,94 @@ fn pixel(gid: vec3<u32>) -> u32 {
     return gid.y * params.width + gid.x;
 }
 
-@compute @workgroup_size(16, 16, 1)
-fn init(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let i = pixel(gid);
-    if (i == 0xffffffffu) {
-        return;
+// Parents within a tile, by local index (row by row).
+var<workgroup> local_parent: array<atomic<u32>, 256>;
+
+fn find_local(start: u32) -> u32 {
+    var x = start;
+    loop {
+        let p = atomicLoad(&local_parent[x]);
+        if (p == x) {
+            return x;
+        }
+        x = p;
     }
-    atomicStore(&parent[i], i);
-    atomicStore(&size[i], 0u);
+    return x;
+}
+
+fn unite_local(a0: u32, b0: u32) {
+    var a = a0;
+    var b = b0;
+    loop {
+        a = find_local(a);
+        b = find_local(b);
+        if (a == b) {
+            return;
+        }
+        if (a < b) {
+            let old = atomicMin(&local_parent[b], a);
+            if (old == b) {
+                return;
+            }
+            b = old;
+        } else {
+            let old = atomicMin(&local_parent[a], b);
+            if (old == a) {
+                return;
+            }
+            a = old;
+        }
+    }
 }
 
 @compute @workgroup_size(16, 16, 1)
-fn merge(@builtin(global_invocation_id) gid: vec3<u32>) {
+fn local(
+    @builtin(global_invocation_id) gid: vec3<u32>,
+    @builtin(local_invocation_id) lid: vec3<u32>,
+    @builtin(local_invocation_index) li: u32,
+) {
+    atomicStore(&local_parent[li], li);
     let i = pixel(gid);
-    if (i == 0xffffffffu) {
+    var v = INVALID;
+    if (i != 0xffffffffu) {
+        v = disparity[i];
+    }
+    workgroupBarrier();
+    if (v != INVALID) {
+        if (lid.x < 15u && gid.x + 1u < params.width && joined(v, disparity[i + 1u])) {
+            unite_local(li, li + 1u);
+        }
+        if (lid.y < 15u && gid.y + 1u < params.height && joined(v, disparity[i + params.width])) {
+            unite_local(li, li + 16u);
+        }
+    }
+    workgroupBarrier();
+    if (i != 0xffffffffu) {
+        let r = find_local(li);
+        let x0 = gid.x - lid.x;
+        let y0 = gid.y - lid.y;
+        atomicStore(&parent[i], (y0 + r / 16u) * params.width + x0 + r % 16u);
+        atomicStore(&size[i], 0u);
+    }
+}
+
+@compute @workgroup_size(16, 16, 1)
+fn merge(
+    @builtin(global_invocation_id) gid: vec3<u32>,
+    @builtin(local_invocation_id) lid: vec3<u32>,
+) {
+    let i = pixel(gid);
+    if (i == 0xffffffffu || (lid.x < 15u && lid.y < 15u)) {
         return;
     }
     let v = disparity[i];
     if (v == INVALID) {
         return;
     }
-    if (gid.x + 1u < params.width && joined(v, disparity[i + 1u])) {
+    if (lid.x == 15u && gid.x + 1u < params.width && joined(v, disparity[i + 1u])) {
         unite(i, i + 1u);
     }
-    if (gid.y + 1u < params.height && joined(v, disparity[i + params.width])) {
+    if (lid.y == 15u && gid.y + 1u < params.height && joined(v, disparity[i + params.width])) {
         unite(i, i + params.width);
     }
 }

@@ -344,7 +344,7 @@ fn words(v: &[u32]) -> &[u8] {
     bytemuck::cast_slice(v)
 }
 
-const SPECKLE_ENTRIES: [&str; 5] = ["init", "merge", "flatten", "count", "apply"];
+const SPECKLE_ENTRIES: [&str; 5] = ["local", "merge", "flatten", "count", "apply"];
 
 impl SgmGpu {
     /// Compiles the kernels that do not depend on the disparity count.
@@ -503,7 +503,6 @@ impl SgmGpu {
                 .map(|(pl, e)| {
                     let all = [&speckle_u, target, &parent, &size];
                     let used: &[u32] = match e {
-                        "init" => &[0, 2, 3],
                         "merge" => &[0, 1, 2],
                         "flatten" => &[0, 2],
                         _ => &[0, 1, 2, 3],
