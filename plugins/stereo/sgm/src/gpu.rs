@@ -663,18 +663,7 @@ impl SgmGpu {
             right_words,
         ];
         let mut total_groups = 0u32;
-        // The directions with the longest paths first: where not every workgroup is resident at
-        // once, GPUs start workgroups roughly in index order, so the longest paths (rows, then
-        // columns) start in the first wave and the short diagonals fill in behind them.
-        let mut order = dirs.to_vec();
-        order.sort_by_key(|&(dx, dy)| {
-            std::cmp::Reverse(match (dx, dy) {
-                (_, 0) => w,
-                (0, _) => h,
-                _ => w.min(h),
-            })
-        });
-        for &(dx, dy) in &order {
+        for &(dx, dy) in dirs {
             let paths = if dy == 0 {
                 hu
             } else if dx == 0 {
