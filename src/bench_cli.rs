@@ -89,6 +89,9 @@ pub(crate) enum BenchCommand {
         /// (`depth.sgm`'s `gpu_exchange`).
         #[arg(long, default_value = "auto", value_parser = parse_exchange)]
         exchange: misslam_depth_sgm::sgm::GpuExchange,
+        /// Summed costs by 32-bit atomics even where the adapter has 64-bit ones.
+        #[arg(long)]
+        atomics32: bool,
         /// Timed runs (medians are reported).
         #[arg(long, default_value_t = 50)]
         repeat: usize,
@@ -300,6 +303,7 @@ pub(crate) fn run(which: BenchCommand) -> anyhow::Result<()> {
             paths,
             volumes,
             exchange,
+            atomics32,
             repeat,
             out,
         } => {
@@ -311,7 +315,7 @@ pub(crate) fn run(which: BenchCommand) -> anyhow::Result<()> {
                 ..Default::default()
             };
             let pair = left.as_deref().zip(right.as_deref());
-            let r = misslam::bench::sgm_gpu(pair, (width, height), &p, repeat)
+            let r = misslam::bench::sgm_gpu(pair, (width, height), &p, repeat, !atomics32)
                 .map_err(anyhow::Error::msg)?;
             let s = &r.stages_ms;
             out!(
@@ -329,7 +333,11 @@ pub(crate) fn run(which: BenchCommand) -> anyhow::Result<()> {
             out!(
                 "stages ({}; {}; {}): upload {:.3}, census {:.3}, aggregate {:.3}, select {:.3}, median {:.3}, readback {:.3} (submission {:.3}, host copy {:.3}), speckles {:.3}, finish {:.3}, total {:.3} ms",
                 if s.gpu_timestamps { "GPU timestamps" } else { "each waited for" },
-                if s.summed_volumes { "costs summed into one volume" } else { "a volume per direction" },
+                match (s.summed_volumes, s.atomics64) {
+                    (true, true) => "costs summed into one volume, 64-bit atomics",
+                    (true, false) => "costs summed into one volume, 32-bit atomics",
+                    _ => "a volume per direction",
+                },
                 if s.subgroups { "subgroup exchange" } else { "workgroup exchange" },
                 s.upload_ms, s.census_ms, s.aggregate_ms, s.select_ms, s.median_ms, s.readback_ms, s.submit_ms, s.convert_ms, s.speckle_ms, s.finish_ms, s.total_ms
             );

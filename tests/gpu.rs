@@ -110,6 +110,14 @@ fn gray_node_on_gpu_matches_cpu_node() {
 }
 
 /// Right image of a random-dot scene: a slanted background and a nearer square (occlusions).
+/// `p` with the directions' costs summed into one volume.
+fn summed_params(p: &misslam_depth_sgm::sgm::SgmParams) -> misslam_depth_sgm::sgm::SgmParams {
+    misslam_depth_sgm::sgm::SgmParams {
+        gpu_volumes: misslam_depth_sgm::sgm::GpuVolumes::Summed,
+        ..*p
+    }
+}
+
 fn stereo_scene(w: usize, h: usize, seed: u64) -> (Vec<u8>, Vec<u8>) {
     let left = bytes(w * h, seed);
     let fill = bytes(w * h, seed + 1);
@@ -243,6 +251,24 @@ fn sgm_kernels_match_the_cpu_path() {
                 );
                 t = tl;
             }
+            // The sums by 32-bit atomics give the same output as by 64-bit ones, where the
+            // adapter has those (lavapipe does).
+            kernels.set_int64_atomics(false);
+            let (got32, t32) = kernels
+                .run(&ctx, &left, &right, w, h, m, &summed_params(p))
+                .unwrap();
+            kernels.set_int64_atomics(true);
+            let (got64, t64) = kernels
+                .run(&ctx, &left, &right, w, h, m, &summed_params(p))
+                .unwrap();
+            assert!(
+                !t32.atomics64 && t64.atomics64 == ctx.has_int64_atomics(),
+                "{name}"
+            );
+            assert!(
+                same(&got32) && same(&got64),
+                "{name}: 32- and 64-bit sums differ"
+            );
             // Timing the stages (a pass per stage, timestamps or each stage waited for) changes
             // nothing but the timing; untimed runs report no stages.
             assert_eq!(timing.aggregate_ms, 0.0, "{name}: untimed");
@@ -415,7 +441,7 @@ fn bench_sgm_gpu_reports_parity_and_stages() {
         max_disparity: 32,
         ..Default::default()
     };
-    let r = misslam::bench::sgm_gpu(None, (96, 40), &p, 2).unwrap();
+    let r = misslam::bench::sgm_gpu(None, (96, 40), &p, 2, true).unwrap();
     assert_eq!((r.width, r.height, r.disparities, r.runs), (96, 40, 32, 2));
     assert_eq!(r.validity_differs, 0, "{r:?}");
     assert!(r.max_abs_diff_px <= 1e-4, "{r:?}");

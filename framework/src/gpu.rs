@@ -139,9 +139,13 @@ impl GpuContext {
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("misslam"),
             // Timestamps time the GPU stages where the adapter has them; subgroups let kernels
-            // exchange values between invocations without workgroup memory and barriers.
+            // exchange values between invocations without workgroup memory and barriers; 64-bit
+            // atomics add four u16 lanes at once.
             required_features: adapter.features()
-                & (wgpu::Features::TIMESTAMP_QUERY | wgpu::Features::SUBGROUP),
+                & (wgpu::Features::TIMESTAMP_QUERY
+                    | wgpu::Features::SUBGROUP
+                    | wgpu::Features::SHADER_INT64
+                    | wgpu::Features::SHADER_INT64_ATOMIC_ALL_OPS),
             required_limits: limits,
             ..Default::default()
         }))
@@ -171,6 +175,13 @@ impl GpuContext {
         (self.device.features().contains(wgpu::Features::SUBGROUP)
             && info.subgroup_min_size == info.subgroup_max_size)
             .then_some(info.subgroup_min_size)
+    }
+
+    /// True where kernels may add to 64-bit integers atomically in storage buffers.
+    pub fn has_int64_atomics(&self) -> bool {
+        self.device
+            .features()
+            .contains(wgpu::Features::SHADER_INT64 | wgpu::Features::SHADER_INT64_ATOMIC_ALL_OPS)
     }
 
     /// True on a discrete GPU (not an integrated, virtual or software adapter).

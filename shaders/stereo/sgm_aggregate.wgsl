@@ -1,4 +1,5 @@
 // uses: sgm_paths.wgsl
+// uses: sgm_sums.wgsl
 // SGM step 2, aggregation along every direction in one dispatch (paths, cost, recurrence and
 // store in `sgm_paths.wgsl`), for any adapter: a workgroup walks PATHS neighbouring paths of one
 // direction side by side, THREADS invocations per path. Per pixel, the invocations of a path

@@ -1,4 +1,5 @@
 // uses: sgm_paths.wgsl
+// uses: sgm_sums.wgsl
 // SGM step 2 as `sgm_aggregate.wgsl` (paths, cost, recurrence and store in `sgm_paths.wgsl`),
 // for adapters with subgroups of a known size: a path's invocations are LANES consecutive lanes
 // of one subgroup (LANES, a power of two, at least THREADS and at most the subgroup size; lanes

@@ -58,8 +58,8 @@ const BIG: u32 = 0x3fffffffu;
 // (hi, lo) census code per pixel, the left image then the right one.
 @group(0) @binding(2) var<storage, read> codes: array<vec2<u32>>;
 @group(0) @binding(3) var<storage, read_write> volumes: array<u32>;
-// The volume of sums (SUMMED = 1); a placeholder otherwise.
-@group(0) @binding(4) var<storage, read_write> sums: array<atomic<u32>>;
+// The volume of sums (SUMMED = 1; binding 4, a placeholder otherwise) and `add_sums` come from
+// `sgm_sums.wgsl` (32-bit atomics) or `sgm_sums64.wgsl` (64-bit), as the host assembles the kernel.
 
 // The direction of a workgroup (`group` counts all directions' workgroups): its index.
 fn direction(group: u32) -> u32 {
@@ -183,8 +183,7 @@ fn store(r: u32, i: u32, d0: u32, cur: vec4<u32>, padding: vec4<bool>) {
     if (SUMMED == 1u) {
         let b = select(cur & vec4<u32>(0xffffu), vec4<u32>(0u), padding);
         let s = (i * (4u * THREADS) + d0) / 2u;
-        atomicAdd(&sums[s], b.x | (b.y << 16u));
-        atomicAdd(&sums[s + 1u], b.z | (b.w << 16u));
+        add_sums(s, b);
         return;
     }
     let at = r * params.volume_words + (i * (4u * THREADS) + d0) * BYTES / 4u;

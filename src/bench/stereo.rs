@@ -245,12 +245,14 @@ pub fn random_dot_pair(w: usize, h: usize, nd: u32) -> (Vec<u8>, Vec<u8>) {
 }
 
 /// SGM on the GPU and on the CPU on one pair (the files, or [`random_dot_pair`] at `size`):
-/// median times, the GPU's stage breakdown and the parity of the two outputs.
+/// median times, the GPU's stage breakdown and the parity of the two outputs. `int64_atomics`
+/// false keeps the summed costs to 32-bit atomics ([`misslam_depth_sgm::gpu::SgmGpu::set_int64_atomics`]).
 pub fn sgm_gpu(
     pair: Option<(&Path, &Path)>,
     size: (usize, usize),
     p: &misslam_depth_sgm::sgm::SgmParams,
     repeat: usize,
+    int64_atomics: bool,
 ) -> Result<SgmGpuBench, String> {
     use misslam_depth_sgm::gpu::{Breakdown, SgmGpu, SgmGpuTiming};
     use misslam_depth_sgm::sgm::{sgm, Scratch};
@@ -261,6 +263,7 @@ pub fn sgm_gpu(
     let info = &ctx.adapter_info;
     let adapter = format!("{} ({:?}, {:?})", info.name, info.backend, info.device_type);
     let mut kernels = SgmGpu::new(&ctx);
+    kernels.set_int64_atomics(int64_atomics);
     let run = |k: &mut SgmGpu| k.run(&ctx, &left, &right, w, h, None, p);
     let (got, _) = run(&mut kernels)?;
     let mut totals = Vec::new();
@@ -298,6 +301,7 @@ pub fn sgm_gpu(
         gpu_timestamps: stages.iter().all(|t| t.gpu_timestamps),
         summed_volumes: stages.iter().any(|t| t.summed_volumes),
         subgroups: stages.iter().any(|t| t.subgroups),
+        atomics64: stages.iter().any(|t| t.atomics64),
     };
     let mut scratch = Scratch::default();
     let mut cpu_out = Vec::new();

@@ -31,6 +31,10 @@ use misslam_framework::gpu::{wgsl_with_uses, GpuContext, GpuError};
 pub const CENSUS_WGSL: &str = include_str!("../../../../shaders/stereo/sgm_census.wgsl");
 /// What both aggregation kernels share: paths, cost, recurrence, store (`// uses:` line).
 pub const PATHS_WGSL: &str = include_str!("../../../../shaders/stereo/sgm_paths.wgsl");
+/// The volume of sums with 32-bit atomics (`// uses: sgm_sums.wgsl`).
+pub const SUMS_WGSL: &str = include_str!("../../../../shaders/stereo/sgm_sums.wgsl");
+/// The same with 64-bit atomics, in its place where the adapter has them.
+pub const SUMS64_WGSL: &str = include_str!("../../../../shaders/stereo/sgm_sums64.wgsl");
 /// Aggregation along all directions, exchanging through workgroup memory.
 pub const AGGREGATE_WGSL: &str = include_str!("../../../../shaders/stereo/sgm_aggregate.wgsl");
 /// Aggregation along all directions, exchanging by subgroup shuffles.
@@ -86,6 +90,8 @@ pub struct SgmGpuTiming {
     pub summed_volumes: bool,
     /// True when the aggregation exchanged by subgroup shuffles (`gpu_exchange`).
     pub subgroups: bool,
+    /// True when the sums were added by 64-bit atomics.
+    pub atomics64: bool,
 }
 
 /// How the aggregation kernel is specialised for a disparity count and cost bound.
@@ -102,6 +108,8 @@ struct Layout {
     /// Subgroup lanes per path (a power of two, at least `threads`) when the invocations
     /// exchange by subgroup shuffles; 0 when through workgroup memory.
     lanes: u32,
+    /// The sums added by one 64-bit atomic per four disparities instead of two 32-bit ones.
+    atomics64: bool,
 }
 
 impl Layout {
@@ -124,6 +132,7 @@ impl Layout {
             bytes,
             summed: false,
             lanes: 0,
+            atomics64: false,
         }
     }
 
@@ -179,6 +188,7 @@ impl Layout {
         let per_direction = Layout::of(p);
         let summed = Layout {
             summed: true,
+            atomics64: a.int64_atomics,
             ..per_direction
         };
         let layout = match p.gpu_volumes {
@@ -224,6 +234,8 @@ struct Adapter {
     /// and 0.51; on Mesa's lavapipe (320x240, 64 disparities) the per-direction volumes were
     /// the faster, 228 against 291 ms a pair.
     discrete: bool,
+    /// 64-bit atomics in storage buffers (and not switched off: [`SgmGpu::set_int64_atomics`]).
+    int64_atomics: bool,
 }
 
 /// Replaces the value of each `const NAME: u32 = ...;` line of a kernel.
@@ -282,6 +294,17 @@ struct Frame {
     _keep: Vec<wgpu::Buffer>,
 }
 
+/// The f32 values of little-endian `bytes`, copied in 64 KiB chunks by rayon's threads.
+fn copy_parallel(bytes: &[u8]) -> Vec<f32> {
+    use rayon::prelude::*;
+    const CHUNK: usize = 1 << 14;
+    let mut d = vec![0.0f32; bytes.len() / 4];
+    d.par_chunks_mut(CHUNK)
+        .zip(bytes.par_chunks(4 * CHUNK))
+        .for_each(|(out, src)| bytemuck::cast_slice_mut::<f32, u8>(out).copy_from_slice(src));
+    d
+}
+
 /// A bind group of `entries` (binding, buffer) of group 0 of `pipeline`, for entry points whose
 /// automatic layout holds only some of their module's bindings.
 fn bind_some(
@@ -336,6 +359,8 @@ pub struct SgmGpu {
     frame: Option<Frame>,
     timestamps: Option<Timestamps>,
     breakdown: Breakdown,
+    /// 64-bit atomics for the sums where the adapter has them.
+    int64_atomics: bool,
     /// The upload's bytes, reused.
     host: Vec<u8>,
 }
@@ -388,8 +413,15 @@ impl SgmGpu {
             frame: None,
             timestamps,
             breakdown: Breakdown::Off,
+            int64_atomics: true,
             host: Vec::new(),
         }
+    }
+
+    /// Whether the volume of sums may use 64-bit atomics where the adapter has them (the
+    /// default; off: two 32-bit atomics per four disparities). The output is the same.
+    pub fn set_int64_atomics(&mut self, on: bool) {
+        self.int64_atomics = on;
     }
 
     /// Whether and how the following runs time their stages (the timing's stage fields).
@@ -414,7 +446,16 @@ impl SgmGpu {
             AGGREGATE_WGSL
         };
         let agg = specialise(
-            &wgsl_with_uses(kernel, &[("sgm_paths.wgsl", PATHS_WGSL)])?,
+            &wgsl_with_uses(
+                kernel,
+                &[
+                    ("sgm_paths.wgsl", PATHS_WGSL),
+                    (
+                        "sgm_sums.wgsl",
+                        if l.atomics64 { SUMS64_WGSL } else { SUMS_WGSL },
+                    ),
+                ],
+            )?,
             &constants,
         )?;
         let (sel_bytes, sel_dirs) = l.selected(dirs);
@@ -548,6 +589,7 @@ impl SgmGpu {
     /// direction or summed, as `gpu_volumes` asks and the adapter's buffer limits allow, and
     /// the exchange, as `gpu_exchange` asks and its subgroups allow.
     fn layout(
+        &self,
         ctx: &GpuContext,
         p: &SgmParams,
         w: usize,
@@ -562,6 +604,7 @@ impl SgmGpu {
             max_buffer: max,
             subgroup: ctx.subgroup_size(),
             discrete: ctx.is_discrete(),
+            int64_atomics: self.int64_atomics && ctx.has_int64_atomics(),
         };
         Layout::choose(p, (w, h, dirs), a)
     }
@@ -598,7 +641,7 @@ impl SgmGpu {
             ));
         }
         let dirs: &[(isize, isize)] = if p.paths == 8 { &DIRS } else { &DIRS4 };
-        let layout = Self::layout(ctx, p, w, h, dirs.len())?;
+        let layout = self.layout(ctx, p, w, h, dirs.len())?;
         self.pipelines(ctx, layout, dirs.len() as u32)?;
         self.frame(ctx, w, h, dirs.len(), layout);
         let (agg, sel) = &self.specialised[&(layout, dirs.len() as u32)];
@@ -820,8 +863,9 @@ impl SgmGpu {
                     .get_mapped_range()
                     .map_err(|e| e.to_string())?;
                 if k == 0 {
-                    // NaN where invalid already (`finish`): a plain copy.
-                    d = bytemuck::pod_collect_to_vec(&view[..bytes as usize]);
+                    // NaN where invalid already (`finish`): a plain copy, in parallel (one
+                    // thread reads memory the GPU has just written at about 8 GB/s).
+                    d = copy_parallel(&view[..bytes as usize]);
                 } else {
                     stamps = view
                         .chunks_exact(8)
@@ -855,6 +899,7 @@ impl SgmGpu {
         timing.readback_ms = (after_submit - kernels).max(0.0);
         timing.summed_volumes = layout.summed;
         timing.subgroups = layout.lanes > 0;
+        timing.atomics64 = layout.atomics64;
         timing.total_ms = t_all.elapsed().as_secs_f64() * 1e3;
         Ok((d, timing))
     }
@@ -866,7 +911,7 @@ mod tests {
 
     #[test]
     fn specialise_replaces_every_constant_and_names_a_missing_one() {
-        let uses = [("sgm_paths.wgsl", PATHS_WGSL)];
+        let uses = [("sgm_paths.wgsl", PATHS_WGSL), ("sgm_sums.wgsl", SUMS_WGSL)];
         for kernel in [AGGREGATE_WGSL, AGGREGATE_SUBGROUP_WGSL] {
             let src = specialise(
                 &wgsl_with_uses(kernel, &uses).unwrap(),
@@ -895,6 +940,7 @@ mod tests {
             max_buffer,
             subgroup: None,
             discrete: false,
+            int64_atomics: false,
         };
         let auto = |max: u64| Layout::choose(&p, (640, 480, 8), cpu(max));
         assert!(!auto(per_direction).unwrap().summed, "fits: per direction");
@@ -925,7 +971,27 @@ mod tests {
             discrete: true,
             ..cpu(u64::MAX)
         };
-        assert!(Layout::choose(&p, (640, 480, 8), gpu).unwrap().summed);
+        let g = Layout::choose(&p, (640, 480, 8), gpu).unwrap();
+        assert!(g.summed && !g.atomics64);
+        // With 64-bit atomics the sums take them; a volume per direction has no sums.
+        let wide_atomics = Adapter {
+            int64_atomics: true,
+            ..gpu
+        };
+        assert!(
+            Layout::choose(&p, (640, 480, 8), wide_atomics)
+                .unwrap()
+                .atomics64
+        );
+        let per = SgmParams {
+            gpu_volumes: GpuVolumes::PerDirection,
+            ..p
+        };
+        assert!(
+            !Layout::choose(&per, (640, 480, 8), wide_atomics)
+                .unwrap()
+                .atomics64
+        );
         assert_eq!(l.volumes_bytes(640, 480, 8), 2 * per_direction);
         assert_eq!(
             Layout { summed: true, ..l }.volumes_bytes(640, 480, 8),
@@ -959,6 +1025,7 @@ mod tests {
                 max_buffer: u64::MAX,
                 subgroup,
                 discrete: false,
+                int64_atomics: false,
             };
             Layout::choose(q, (64, 48, 8), a)
         };
@@ -983,5 +1050,25 @@ mod tests {
         }
         let l = choose(&p(128, GpuExchange::Workgroup), Some(32)).unwrap();
         assert_eq!(l.lanes, 0);
+    }
+
+    #[test]
+    fn the_parallel_copy_keeps_every_value_and_its_bits() {
+        // Several chunks and a partial one; NaN bits survive the copy.
+        let want: Vec<f32> = (0..(3 << 14) + 5)
+            .map(|i| {
+                if i % 7 == 0 {
+                    f32::NAN
+                } else {
+                    i as f32 * 0.25
+                }
+            })
+            .collect();
+        let got = copy_parallel(bytemuck::cast_slice(&want));
+        assert_eq!(got.len(), want.len());
+        assert!(got
+            .iter()
+            .zip(&want)
+            .all(|(a, b)| a.to_bits() == b.to_bits()));
     }
 }
