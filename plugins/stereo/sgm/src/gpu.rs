@@ -294,17 +294,6 @@ struct Frame {
     _keep: Vec<wgpu::Buffer>,
 }
 
-/// The f32 values of little-endian `bytes`, copied in 64 KiB chunks by rayon's threads.
-fn copy_parallel(bytes: &[u8]) -> Vec<f32> {
-    use rayon::prelude::*;
-    const CHUNK: usize = 1 << 14;
-    let mut d = vec![0.0f32; bytes.len() / 4];
-    d.par_chunks_mut(CHUNK)
-        .zip(bytes.par_chunks(4 * CHUNK))
-        .for_each(|(out, src)| bytemuck::cast_slice_mut::<f32, u8>(out).copy_from_slice(src));
-    d
-}
-
 /// A bind group of `entries` (binding, buffer) of group 0 of `pipeline`, for entry points whose
 /// automatic layout holds only some of their module's bindings.
 fn bind_some(
@@ -863,9 +852,9 @@ impl SgmGpu {
                     .get_mapped_range()
                     .map_err(|e| e.to_string())?;
                 if k == 0 {
-                    // NaN where invalid already (`finish`): a plain copy, in parallel (one
-                    // thread reads memory the GPU has just written at about 8 GB/s).
-                    d = copy_parallel(&view[..bytes as usize]);
+                    // NaN where invalid already (`finish`): a plain copy. (Split over rayon's
+                    // threads it took 0.31 ms on the H100 machine instead of 0.19.)
+                    d = bytemuck::pod_collect_to_vec(&view[..bytes as usize]);
                 } else {
                     stamps = view
                         .chunks_exact(8)
@@ -1050,25 +1039,5 @@ mod tests {
         }
         let l = choose(&p(128, GpuExchange::Workgroup), Some(32)).unwrap();
         assert_eq!(l.lanes, 0);
-    }
-
-    #[test]
-    fn the_parallel_copy_keeps_every_value_and_its_bits() {
-        // Several chunks and a partial one; NaN bits survive the copy.
-        let want: Vec<f32> = (0..(3 << 14) + 5)
-            .map(|i| {
-                if i % 7 == 0 {
-                    f32::NAN
-                } else {
-                    i as f32 * 0.25
-                }
-            })
-            .collect();
-        let got = copy_parallel(bytemuck::cast_slice(&want));
-        assert_eq!(got.len(), want.len());
-        assert!(got
-            .iter()
-            .zip(&want)
-            .all(|(a, b)| a.to_bits() == b.to_bits()));
     }
 }
