@@ -21,28 +21,22 @@ var<workgroup> mins: array<array<array<vec4<u32>, THREADS / 4u>, PATHS>, 2>;
 
 @compute @workgroup_size(THREADS * PATHS, 1, 1)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
-    let group = wid.x + wid.y * params.groups_x;
-    // Which direction: uniform for the whole workgroup, so every invocation returns or none does.
-    let r = direction(group);
-    let dx = params.dir[r].dx;
-    let dy = params.dir[r].dy;
-    let paths = params.dir[r].paths;
-    let first_path = (group - params.dir[r].first) * PATHS;
-    if (first_path >= paths) {
+    let wg = workgroup_paths(wid, PATHS);
+    if (wg.first >= wg.paths) {
         return;
     }
     // Steps of the workgroup: its longest path (uniform, so every invocation meets every barrier).
-    let steps = longest(first_path, PATHS, paths, dx, dy);
+    let steps = longest(wg.first, PATHS, wg.paths, wg.dx, wg.dy);
     let sp = lid.x / THREADS;
     let t = lid.x % THREADS;
-    let path = first_path + sp;
+    let path = wg.first + sp;
     let d0 = 4u * t;
     let d = vec4<u32>(d0) + vec4<u32>(0u, 1u, 2u, 3u);
     let padding = d >= vec4<u32>(params.disparities);
-    var p = start(path, dx, dy);
+    var p = start(path, wg.dx, wg.dy);
     var len = 0u;
-    if (path < paths) {
-        len = length(p, dx, dy);
+    if (path < wg.paths) {
+        len = length(p, wg.dx, wg.dy);
     }
     var gray_prev = 0u;
     var prev = vec4<u32>(BIG);
@@ -59,7 +53,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid
             let i = u32(p.y) * params.width + u32(p.x);
             var cur = cost(p, d, code, right);
             // The next pixel's codes, used after the barrier.
-            let q = p + vec2<i32>(dx, dy);
+            let q = p + vec2<i32>(wg.dx, wg.dy);
             if (step + 1u < len) {
                 code = codes[u32(q.y) * params.width + u32(q.x)];
                 right = right_codes(q, d0);
@@ -87,7 +81,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid
             }
             cur = select(cur, vec4<u32>(BIG), padding);
             prev = cur;
-            store(r, i, d0, cur, padding);
+            store(wg.dir, i, d0, cur, padding);
             gray_prev = g;
             p = q;
             lo[buf ^ 1u][sp][t] = cur.x;

@@ -34,29 +34,23 @@ fn main(
     @builtin(subgroup_size) subgroup_size: u32,
     @builtin(subgroup_invocation_id) lane: u32,
 ) {
-    let group = wid.x + wid.y * params.groups_x;
-    // Which direction: uniform for the whole workgroup, so every invocation returns or none does.
-    let r = direction(group);
-    let dx = params.dir[r].dx;
-    let dy = params.dir[r].dy;
-    let paths = params.dir[r].paths;
-    let first_path = (group - params.dir[r].first) * PATHS;
-    if (first_path >= paths) {
+    let wg = workgroup_paths(wid, PATHS);
+    if (wg.first >= wg.paths) {
         return;
     }
     // Steps of the workgroup: its longest path (uniform, so the shuffles meet every lane).
-    let steps = longest(first_path, PATHS, paths, dx, dy);
+    let steps = longest(wg.first, PATHS, wg.paths, wg.dx, wg.dy);
     let sp = subgroup * (subgroup_size / LANES) + lane / LANES;
     let t = lane % LANES;
-    let path = first_path + sp;
+    let path = wg.first + sp;
     let d0 = 4u * t;
     let d = vec4<u32>(d0) + vec4<u32>(0u, 1u, 2u, 3u);
     let padding = d >= vec4<u32>(params.disparities);
     let holds = t < THREADS;
-    var p = start(path, dx, dy);
+    var p = start(path, wg.dx, wg.dy);
     var len = 0u;
-    if (path < paths && sp < PATHS) {
-        len = length(p, dx, dy);
+    if (path < wg.paths && sp < PATHS) {
+        len = length(p, wg.dx, wg.dy);
     }
     var gray_prev = 0u;
     var prev = vec4<u32>(BIG);
@@ -77,7 +71,7 @@ fn main(
             let i = u32(p.y) * params.width + u32(p.x);
             var cur = cost(p, d, code, right);
             // The next pixel's codes, loaded a step ahead.
-            let q = p + vec2<i32>(dx, dy);
+            let q = p + vec2<i32>(wg.dx, wg.dy);
             if (step + 1u < len && holds) {
                 code = codes[u32(q.y) * params.width + u32(q.x)];
                 right = right_codes(q, d0);
@@ -94,7 +88,7 @@ fn main(
             cur = select(cur, vec4<u32>(BIG), padding);
             prev = cur;
             if (holds) {
-                store(r, i, d0, cur, padding);
+                store(wg.dir, i, d0, cur, padding);
             }
             gray_prev = g;
             p = q;

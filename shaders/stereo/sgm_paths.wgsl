@@ -73,6 +73,25 @@ fn direction(group: u32) -> u32 {
     return r;
 }
 
+// A workgroup's share of the paths: its direction `dir`, that direction's step (dx, dy) and number
+// of paths, and its first path (it takes `per_group` consecutive ones).
+struct Group {
+    dir: u32,
+    dx: i32,
+    dy: i32,
+    paths: u32,
+    first: u32,
+}
+
+// The share of workgroup `wid` (uniform for the workgroup, so every invocation returns or none
+// does when `first` is past the paths).
+fn workgroup_paths(wid: vec3<u32>, per_group: u32) -> Group {
+    let group = wid.x + wid.y * params.groups_x;
+    let r = direction(group);
+    let d = params.dir[r];
+    return Group(r, d.dx, d.dy, d.paths, (group - d.first) * per_group);
+}
+
 fn start(path: u32, dx: i32, dy: i32) -> vec2<i32> {
     let w = i32(params.width);
     let h = i32(params.height);

@@ -9,6 +9,7 @@
 //! deterministic from the seed.
 #![deny(missing_docs)]
 
+mod ahead;
 pub mod mesh_input;
 pub mod render;
 pub mod scene;
@@ -26,6 +27,7 @@ use misslam_framework::{
     StereoFrame, TrackingState, TypedPlugin, VertexMap,
 };
 
+use ahead::Ahead;
 use render::{Raster, View};
 use scene::{Motion, Scene, Trajectory};
 use sensor::{frame_seed, gauss_table, quantize, to_srgb8, Noise, SplitMix, GAMMA_LUT};
@@ -791,101 +793,12 @@ impl Phantom {
     }
 }
 
-/// Renderers on threads of their own, each rendering every `n`-th frame from its own first
-/// one (`render_threads`); the node takes their frames in turn.
-struct Ahead {
-    /// The first frame: renderer k renders first + k, first + k + n, ...
-    first: u64,
-    /// The next frame index the renderers deliver.
-    next: u64,
-    /// Per renderer: its frames, `None` past the end of the sequence.
-    rx: Vec<std::sync::mpsc::Receiver<Option<PhantomFrame>>>,
-}
-
-impl Ahead {
-    /// Starts `n` renderers of `params` at frame `first`.
-    fn start(params: &Params, seed: u64, first: u64, n: usize) -> Result<Ahead, String> {
-        let mut rx = Vec::with_capacity(n);
-        for k in 0..n {
-            let mut phantom = Phantom::new(params.clone(), seed)?;
-            // One frame waiting and one being rendered, per renderer.
-            let (tx, r) = std::sync::mpsc::sync_channel(1);
-            std::thread::Builder::new()
-                .name(format!("phantom render {k}"))
-                .spawn(move || {
-                    let mut index = first + k as u64;
-                    loop {
-                        let frame = phantom.render(index);
-                        let end = frame.is_none();
-                        // The node hung up (dropped or fell back): stop.
-                        if tx.send(frame).is_err() || end {
-                            return;
-                        }
-                        index += n as u64;
-                    }
-                })
-                .map_err(|e| format!("could not start a phantom renderer: {e}"))?;
-            rx.push(r);
-        }
-        Ok(Ahead {
-            first,
-            next: first,
-            rx,
-        })
-    }
-
-    /// Frame `index` from its renderer; `Err` when the renderers are not at that frame (the
-    /// graph skipped one) or one of them stopped.
-    fn take(&mut self, index: u64) -> Result<Option<PhantomFrame>, String> {
-        if index != self.next {
-            return Err(format!(
-                "the graph asked for frame {index}, the renderers were at {}",
-                self.next
-            ));
-        }
-        let k = ((index - self.first) % self.rx.len() as u64) as usize;
-        let frame = self.rx[k]
-            .recv()
-            .map_err(|_| format!("the renderer of frame {index} stopped"))?;
-        self.next += 1;
-        Ok(frame)
-    }
-}
-
 /// The node.
 pub struct PhantomNode {
     phantom: Phantom,
     rest: Arc<Mesh>,
     /// The renderers ahead (`render_threads` > 1), started at the first frame asked for.
     ahead: Option<Ahead>,
-}
-
-impl PhantomNode {
-    /// Frame `index`: from the renderers ahead where they run and are at that frame, else
-    /// rendered here (a logged fall-back for the rest of the run).
-    fn frame(&mut self, index: u64) -> Option<PhantomFrame> {
-        let n = self.phantom.params.render_threads as usize;
-        if n > 1 && self.ahead.is_none() {
-            match Ahead::start(&self.phantom.params, self.phantom.seed, index, n) {
-                Ok(a) => self.ahead = Some(a),
-                Err(e) => {
-                    tracing::warn!("source.phantom: {e}; rendering each frame when asked");
-                    self.phantom.params.render_threads = 1;
-                }
-            }
-        }
-        if let Some(a) = &mut self.ahead {
-            match a.take(index) {
-                Ok(frame) => return frame,
-                Err(e) => {
-                    tracing::warn!("source.phantom: {e}; rendering each frame when asked");
-                    self.ahead = None;
-                    self.phantom.params.render_threads = 1;
-                }
-            }
-        }
-        self.phantom.render(index)
-    }
 }
 
 impl Node for PhantomNode {
@@ -973,61 +886,4 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
             })
         },
     ))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn small(render_threads: u32) -> Params {
-        Params {
-            width: 64,
-            height: 48,
-            focal_px: 70.0,
-            frames: 7,
-            render_threads,
-            ..Params::default()
-        }
-    }
-
-    fn same(a: &PhantomFrame, b: &PhantomFrame) -> bool {
-        let bits = |m: &FloatMap| m.data.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
-        a.stereo.index == b.stereo.index
-            && a.stereo.left.data == b.stereo.left.data
-            && a.stereo.right.data == b.stereo.right.data
-            && bits(&a.depth.map) == bits(&b.depth.map)
-            && a.pose.world_from_camera == b.pose.world_from_camera
-    }
-
-    #[test]
-    fn renderers_ahead_deliver_the_same_frames_and_fall_back_on_a_skip() {
-        let mut reference = Phantom::new(small(1), 3).unwrap();
-        let node = |n| {
-            let phantom = Phantom::new(small(n), 3).unwrap();
-            let rest = Arc::new(phantom.rest_mesh());
-            PhantomNode {
-                phantom,
-                rest,
-                ahead: None,
-            }
-        };
-        // Three renderers from frame 2 to the end of the sequence.
-        let mut ahead = node(3);
-        for i in 2..7 {
-            let want = reference.render(i).unwrap();
-            let got = ahead.frame(i).expect("a frame before the end");
-            assert!(same(&got, &want), "frame {i}");
-            assert!(ahead.ahead.is_some(), "frame {i} came from the renderers");
-        }
-        assert!(ahead.frame(7).is_none(), "the stream ends after `frames`");
-        // A skipped frame: the renderers stop and the node renders, still the same frames.
-        let mut skip = node(2);
-        for i in [0, 1, 4, 5] {
-            let got = skip.frame(i).unwrap();
-            assert!(same(&got, &reference.render(i).unwrap()), "frame {i}");
-        }
-        assert!(skip.ahead.is_none(), "fell back after the skip");
-        let err = Phantom::new(small(0), 3).err().unwrap();
-        assert!(err.contains("render_threads"), "{err}");
-    }
 }

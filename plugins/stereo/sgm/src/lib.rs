@@ -9,6 +9,7 @@ mod aggregate_avx2;
 mod census;
 mod filters;
 pub mod gpu;
+mod gpu_layout;
 pub mod reference;
 mod select;
 pub mod sgm;
