@@ -382,6 +382,30 @@ fn depth_sgm_on_the_gpu_scores_as_on_the_cpu() {
         return;
     }
     let mut scores = Vec::new();
+    // A forced subgroup exchange that the adapter cannot give (a path of 256 disparities takes
+    // 64 lanes: more than lavapipe's 8 or an NVIDIA GPU's 32) is refused when the graph is
+    // built, naming the parameter.
+    let sets = [
+        "graph.frames.count=1",
+        "depth.device=\"gpu\"",
+        "depth.max_disparity=256",
+        "depth.gpu_exchange=\"subgroup\"",
+    ]
+    .map(String::from);
+    let g = misslam::framework::graph::load(
+        std::path::Path::new("graphs/depth_sgm_phantom.toml"),
+        &misslam::builtin_registry(),
+        &sets,
+    )
+    .expect("a valid graph");
+    let err = misslam::framework::Runtime::build(g)
+        .err()
+        .expect("the node is refused when built")
+        .to_string();
+    assert!(
+        err.contains("gpu_exchange") && (err.contains("64 lanes") || err.contains("no subgroups")),
+        "{err}"
+    );
     // The GPU twice: a volume of costs per direction, and the costs summed into one.
     for (device, volumes) in [("cpu", "auto"), ("gpu", "per_direction"), ("gpu", "summed")] {
         let sets: Vec<String> = [

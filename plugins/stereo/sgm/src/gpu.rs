@@ -191,6 +191,15 @@ fn words(v: &[u32]) -> &[u8] {
 
 const SPECKLE_ENTRIES: [&str; 5] = ["local", "merge", "flatten", "count", "apply"];
 
+/// Whether this adapter can run `p`'s `gpu_exchange` (a forced "subgroup" needs subgroups
+/// of one size that hold a path); the message names the parameter. The node checks it when it
+/// is built, before any frame.
+pub fn check_exchange(p: &SgmParams, ctx: &GpuContext) -> Result<(), String> {
+    Layout::of(p)
+        .exchanged(p.gpu_exchange, ctx.subgroup_size())
+        .map(|_| ())
+}
+
 impl SgmGpu {
     /// Compiles the kernels that do not depend on the disparity count.
     pub fn new(ctx: &GpuContext) -> Self {

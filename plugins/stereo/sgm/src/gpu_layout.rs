@@ -51,7 +51,11 @@ impl Layout {
     /// all have `subgroup` lanes (`None`: no subgroups, or of varying size). A path takes the
     /// next power of two of `threads` lanes of one subgroup, so it must fit one; a workgroup
     /// is a whole number of subgroups, of at least 64 invocations.
-    fn exchanged(self, choice: GpuExchange, subgroup: Option<u32>) -> Result<Layout, String> {
+    pub(crate) fn exchanged(
+        self,
+        choice: GpuExchange,
+        subgroup: Option<u32>,
+    ) -> Result<Layout, String> {
         let lanes = self.threads.next_power_of_two();
         match (choice, subgroup.filter(|&s| lanes <= s)) {
             (GpuExchange::Workgroup, _) | (GpuExchange::Auto, None) => Ok(self),

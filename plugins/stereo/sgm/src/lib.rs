@@ -106,6 +106,9 @@ pub fn build(params: Params, ctx: &BuildContext) -> Result<SgmNode, BuildError> 
             let k = gpu::SgmGpu::new(&c);
             (c, k)
         });
+    if let Some((c, _)) = &gpu {
+        gpu::check_exchange(&params, c).map_err(|m| BuildError::param("gpu_exchange", m))?;
+    }
     Ok(SgmNode {
         gpu,
         params,
