@@ -7,18 +7,21 @@
 //!    have one size that holds a path (`gpu_exchange`), else through workgroup memory with one
 //!    barrier per pixel;
 //!    each direction writes its own volume of L, as bytes when the largest cost plus P2 fits
-//!    one (the default parameters) and as u16 otherwise; or, where the adapter's storage
-//!    buffers cannot hold a volume per direction (`gpu_volumes`), every direction adds its L into
-//!    one volume of u16 sums by atomic adds, which the selection reads as one u16 volume;
+//!    one (the default parameters) and as u16 otherwise; or (`gpu_volumes`: on a discrete GPU,
+//!    and where the adapter's storage buffers cannot hold a volume per direction) every
+//!    direction adds its L into one volume of u16 sums by atomic adds (one 64-bit add per four
+//!    disparities where the adapter has them), which the selection reads as one u16 volume;
 //! 3. selection, one workgroup per row: the sums of the volumes, the winner with the uniqueness
 //!    margin and the parabola, the right image's winners (atomic minima in workgroup memory) and
 //!    the left-right check;
 //! 4. the 3x3 median;
-//! 5. speckle removal by a parallel union-find;
+//! 5. speckle removal by a parallel union-find, each 16x16 tile in workgroup memory first;
 //! 6. the final map's bits, NaN where invalid, so the readback is a plain copy.
 //!
 //! The buffers live across calls (reallocated when the size or the disparity layout changes);
-//! the stages are timed by GPU timestamps where the adapter has them. The kernels compute the
+//! every kernel runs in one compute pass, or a pass per stage timed by GPU timestamps
+//! ([`SgmGpu::set_breakdown`]). The layout for a configuration and an adapter is
+//! `gpu_layout.rs`'s. The kernels compute the
 //! same integers as [`crate::sgm::sgm`]; the parity test runs both on Mesa's lavapipe in CI.
 
 use std::collections::HashMap;
@@ -73,8 +76,9 @@ pub struct SgmGpuTiming {
     pub speckle_ms: f64,
     /// The final map's bits for the host (NaN where invalid).
     pub finish_ms: f64,
-    /// After the kernels: the copy to the host and the mapping (with GPU timestamps: the wall time from submission to the host's copy less the kernels' times,
-    /// so it also holds the submission and the gaps between the kernels).
+    /// After the kernels: the copy to the host and the mapping (with GPU timestamps: the wall
+    /// time from submission to the host's copy less the kernels' times, so it also holds the
+    /// submission and the gaps between the kernels).
     pub readback_ms: f64,
     /// Of `readback_ms`: the host's submission call (wall time).
     pub submit_ms: f64,
