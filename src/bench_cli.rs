@@ -339,7 +339,7 @@ pub(crate) fn run(which: BenchCommand) -> anyhow::Result<()> {
                     _ => "a volume per direction",
                 },
                 if s.subgroups { "subgroup exchange" } else { "workgroup exchange" },
-                s.upload_ms, s.census_ms, s.aggregate_ms, s.select_ms, s.median_ms, s.readback_ms, s.submit_ms, s.convert_ms, s.speckle_ms, s.finish_ms, s.total_ms
+                s.upload_ms, s.census_ms, s.aggregate_ms, s.select_ms, s.median_ms, s.readback_ms, s.submit_ms, s.copy_ms, s.speckle_ms, s.finish_ms, s.total_ms
             );
             out!(
                 "parity with the CPU: {} pixels differ in validity, max |diff| {:.2e} px; density {:.1} %",

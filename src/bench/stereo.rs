@@ -294,7 +294,7 @@ pub fn sgm_gpu(
         median_ms: med(&|t| t.median_ms),
         readback_ms: med(&|t| t.readback_ms),
         submit_ms: med(&|t| t.submit_ms),
-        convert_ms: med(&|t| t.convert_ms),
+        copy_ms: med(&|t| t.copy_ms),
         speckle_ms: med(&|t| t.speckle_ms),
         finish_ms: med(&|t| t.finish_ms),
         total_ms: med(&|t| t.total_ms),

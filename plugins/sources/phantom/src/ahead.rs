@@ -1,7 +1,7 @@
 //! `render_threads`: renderers ahead of the graph, each a [`Phantom`] of its own on a thread of
 //! its own, handing their frames to the node over bounded channels.
 
-use crate::{Params, Phantom, PhantomFrame, PhantomNode};
+use crate::{Phantom, PhantomFrame, PhantomNode};
 
 /// Renderers on threads of their own, each rendering every `n`-th frame from its own first
 /// one (`render_threads`); the node takes their frames in turn.
@@ -15,11 +15,11 @@ pub(crate) struct Ahead {
 }
 
 impl Ahead {
-    /// Starts `n` renderers of `params` at frame `first`.
-    pub(crate) fn start(params: &Params, seed: u64, first: u64, n: usize) -> Result<Ahead, String> {
+    /// Starts `n` renderers, clones of `phantom`, at frame `first`.
+    pub(crate) fn start(phantom: &Phantom, first: u64, n: usize) -> Result<Ahead, String> {
         let mut rx = Vec::with_capacity(n);
         for k in 0..n {
-            let mut phantom = Phantom::new(params.clone(), seed)?;
+            let mut phantom = phantom.clone();
             // One frame waiting and one being rendered, per renderer.
             let (tx, r) = std::sync::mpsc::sync_channel(1);
             std::thread::Builder::new()
@@ -70,7 +70,7 @@ impl PhantomNode {
     pub(crate) fn frame(&mut self, index: u64) -> Option<PhantomFrame> {
         let n = self.phantom.params.render_threads as usize;
         if n > 1 && self.ahead.is_none() {
-            match Ahead::start(&self.phantom.params, self.phantom.seed, index, n) {
+            match Ahead::start(&self.phantom, index, n) {
                 Ok(a) => self.ahead = Some(a),
                 Err(e) => {
                     tracing::warn!("source.phantom: {e}; rendering each frame when asked");

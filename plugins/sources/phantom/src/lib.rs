@@ -189,7 +189,9 @@ pub struct PhantomFrame {
     pub rest_points: VertexMap,
 }
 
-/// A phantom sequence.
+/// A phantom sequence. A clone renders the same frames and shares the baked albedo; the
+/// renderers ahead (`render_threads`) are clones.
+#[derive(Clone)]
 pub struct Phantom {
     params: Params,
     motion: Motion,
@@ -202,7 +204,8 @@ pub struct Phantom {
     grid: Option<(usize, usize)>,
     /// Template motion: (frames, placed positions frame by frame).
     motion_frames: Option<(usize, Vec<[f32; 3]>)>,
-    albedo: Albedo,
+    /// The baked albedo (tens of MB), shared by clones.
+    albedo: Arc<Albedo>,
     vertex_colors: Vec<[u8; 3]>,
     gamma: Vec<f32>,
     gauss: Vec<f32>,
@@ -413,7 +416,7 @@ impl Phantom {
             triangles,
             grid,
             motion_frames,
-            albedo,
+            albedo: Arc::new(albedo),
             vertex_colors,
             gamma: (0..GAMMA_LUT)
                 .map(|i| 255.0 * (i as f32 / (GAMMA_LUT - 1) as f32).powf(1.0 / 2.2))
@@ -742,7 +745,7 @@ impl Phantom {
                     [0, 1, 2].map(|k| bw[0] * a0[k] + bw[1] * a1[k] + bw[2] * a2[k])
                 };
                 let (pos, n, rest) = (lerp(vertices), lerp(normals), lerp(&self.rest));
-                let a = match self.albedo {
+                let a = match *self.albedo {
                     Albedo::Planar(ref atlas) => atlas.sample(rest[0], rest[1]),
                     Albedo::Triplanar { .. } => self.albedo.sample(rest, lerp(&self.rest_normals)),
                 };

@@ -84,7 +84,7 @@ pub struct SgmGpuTiming {
     pub submit_ms: f64,
     /// Of `readback_ms`: the host's work once the GPU is done, the mapped results copied
     /// (wall time).
-    pub convert_ms: f64,
+    pub copy_ms: f64,
     /// Everything, from the gray images to the disparity map (wall time).
     pub total_ms: f64,
     /// True when the kernels' times come from GPU timestamps; false when each stage was
@@ -185,7 +185,7 @@ pub struct SgmGpu {
     breakdown: Breakdown,
     /// 64-bit atomics for the sums where the adapter has them.
     int64_atomics: bool,
-    /// The upload's bytes, reused.
+    /// The mask as 0 / 1 bytes, reused.
     host: Vec<u8>,
 }
 
@@ -683,7 +683,7 @@ impl SgmGpu {
             })
             .collect();
         ctx.wait().map_err(gpu)?;
-        let t_convert = std::time::Instant::now();
+        let t_copy = std::time::Instant::now();
         let mut d = Vec::new();
         let mut stamps = Vec::new();
         for (k, (buf, rx)) in buffers.iter().zip(mapped).enumerate() {
@@ -709,7 +709,7 @@ impl SgmGpu {
             buf.unmap();
         }
         let after_submit = t_submit.elapsed().as_secs_f64() * 1e3;
-        timing.convert_ms = t_convert.elapsed().as_secs_f64() * 1e3;
+        timing.copy_ms = t_copy.elapsed().as_secs_f64() * 1e3;
         let mut kernels = 0.0;
         if ts.is_some() {
             let period = f64::from(q.get_timestamp_period()) * 1e-6;
