@@ -132,6 +132,39 @@ fn stereo_scene(w: usize, h: usize, seed: u64) -> (Vec<u8>, Vec<u8>) {
     (left, right)
 }
 
+/// The kernels keep their parameters across pairs and write them again only when they change: a
+/// run with other penalties, uniqueness and speckle settings on the same buffers gives what
+/// fresh kernels give, and the CPU's output.
+#[test]
+fn sgm_kernels_take_changed_parameters_on_the_same_buffers() {
+    use misslam_depth_sgm::gpu::SgmGpu;
+    use misslam_depth_sgm::sgm::{sgm, Scratch, SgmParams};
+    let Some(ctx) = gpu() else { return };
+    let (w, h) = (97, 41);
+    let (left, right) = stereo_scene(w, h, 5);
+    let first = SgmParams::default();
+    let second = SgmParams {
+        p1: 6,
+        p2: 60,
+        uniqueness_pct: 5,
+        speckle_window: 20,
+        lr_max_diff: 2.0,
+        ..first
+    };
+    let mut reused = SgmGpu::new(&ctx);
+    let (a, _) = reused.run(&ctx, &left, &right, w, h, None, &first).unwrap();
+    let (b, _) = reused.run(&ctx, &left, &right, w, h, None, &second).unwrap();
+    let (fresh, _) = SgmGpu::new(&ctx)
+        .run(&ctx, &left, &right, w, h, None, &second)
+        .unwrap();
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    assert_ne!(bits(&a), bits(&b), "the parameters change the output");
+    assert_eq!(bits(&b), bits(&fresh), "the second run used the first's parameters");
+    let want = sgm(&left, &right, w, h, None, &second, &mut Scratch::default()).unwrap();
+    let (validity, max_diff) = misslam::bench::disparity_parity(&b, &want);
+    assert!(validity * 1000 <= w * h && max_diff <= 1e-4, "{validity} {max_diff}");
+}
+
 #[test]
 fn sgm_kernels_match_the_cpu_path() {
     use misslam_depth_sgm::gpu::{Breakdown, SgmGpu};
