@@ -153,16 +153,25 @@ fn sgm_kernels_take_changed_parameters_on_the_same_buffers() {
     };
     let mut reused = SgmGpu::new(&ctx);
     let (a, _) = reused.run(&ctx, &left, &right, w, h, None, &first).unwrap();
-    let (b, _) = reused.run(&ctx, &left, &right, w, h, None, &second).unwrap();
+    let (b, _) = reused
+        .run(&ctx, &left, &right, w, h, None, &second)
+        .unwrap();
     let (fresh, _) = SgmGpu::new(&ctx)
         .run(&ctx, &left, &right, w, h, None, &second)
         .unwrap();
     let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
     assert_ne!(bits(&a), bits(&b), "the parameters change the output");
-    assert_eq!(bits(&b), bits(&fresh), "the second run used the first's parameters");
+    assert_eq!(
+        bits(&b),
+        bits(&fresh),
+        "the second run used the first's parameters"
+    );
     let want = sgm(&left, &right, w, h, None, &second, &mut Scratch::default()).unwrap();
     let (validity, max_diff) = misslam::bench::disparity_parity(&b, &want);
-    assert!(validity * 1000 <= w * h && max_diff <= 1e-4, "{validity} {max_diff}");
+    assert!(
+        validity * 1000 <= w * h && max_diff <= 1e-4,
+        "{validity} {max_diff}"
+    );
 }
 
 #[test]

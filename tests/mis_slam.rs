@@ -114,6 +114,52 @@ fn fusion_on_a_static_scene_merges_instead_of_duplicating() {
 }
 
 #[test]
+fn fusion_takes_post_processings_maps_or_lifts_the_depth_itself() {
+    // The graph hands fusion post-processing's vertex and normal maps; without them fusion lifts
+    // the same depth with the same step limit: the same run, to the bit.
+    let sets = ["graph.frames.count=4".to_owned()];
+    let load = |path: &std::path::Path| {
+        misslam::framework::graph::load(path, &misslam::builtin_registry(), &sets).unwrap()
+    };
+    let (dir, own) = mis_slam_with_fusion_inputs(
+        r#"{ depth = "post.depth", stereo = "src.stereo", pose = "track.pose", features = "features.features" }"#,
+        "fusion_maps",
+    );
+    let text = std::fs::read_to_string("graphs/mis_slam.toml").unwrap();
+    assert!(
+        text.contains(r#"vertices = "post.vertices", normals = "post.normals""#),
+        "the shipped graph wires the maps"
+    );
+    let shipped = load(std::path::Path::new("graphs/mis_slam.toml"));
+    let with_maps = common::run_graph_ok(shipped, &dir.join("maps"))
+        .metrics
+        .eval;
+    let lifted = common::run_graph_ok(load(&own), &dir.join("own"))
+        .metrics
+        .eval;
+    assert_eq!(with_maps.len(), lifted.len());
+    for (k, v) in &with_maps {
+        assert_eq!(
+            v.to_bits(),
+            lifted[k].to_bits(),
+            "{k}: {v} against {}",
+            lifted[k]
+        );
+    }
+    // One map without the other is an error naming both ports and the frame.
+    let (dir, half) = mis_slam_with_fusion_inputs(
+        r#"{ depth = "post.depth", vertices = "post.vertices", stereo = "src.stereo" }"#,
+        "fusion_half_maps",
+    );
+    let report = common::run_graph(load(&half), &dir.join("run"));
+    let err = report.error.expect("the run fails").to_string();
+    assert!(
+        err.contains("`vertices` and `normals`") && err.contains("frame 0"),
+        "{err}"
+    );
+}
+
+#[test]
 fn fusion_says_when_the_depth_stops_meeting_the_model() {
     // The scope jumps by up to 20 mm between frames but fusion is given no pose: the depth lands
     // beyond the association distance, most samples become new surfels, and that is counted.

@@ -34,8 +34,8 @@ use misslam_framework::geometry::{arr3, vec3};
 use misslam_framework::nalgebra::{Isometry3, Point3, Vector3};
 use misslam_framework::{
     BuildContext, BuildError, DepthMap, Features, Flow, FrameInfo, Image, Inputs, Metrics, Node,
-    NodeContext, NodeError, NodeResult, Outputs, PortSpec, PortType, Pose, Registry, StereoFrame,
-    SurfelModel, TrackingState, TypedPlugin,
+    NodeContext, NodeError, NodeResult, NormalMap, Outputs, PortSpec, PortType, Pose, Registry,
+    StereoFrame, SurfelModel, TrackingState, TypedPlugin, VertexMap,
 };
 use rayon::prelude::*;
 
@@ -57,7 +57,8 @@ pub struct Params {
     pub decoupled: DecoupledParams,
     /// Fuse and add one depth pixel per `stride` x `stride`.
     pub stride: u32,
-    /// Depth step (mm) to a neighbour above which a pixel gets no normal.
+    /// Depth step (mm) to a neighbour above which a pixel gets no normal (where the node lifts
+    /// the depth itself: without the `vertices` and `normals` inputs).
     pub normal_max_step_mm: f32,
     /// epsilon_dv: a surfel is visible when the depth it projects onto is this close, mm.
     pub visible_distance_mm: f64,
@@ -296,6 +297,7 @@ impl SurfelNode {
         left: Option<&Image>,
         prior: Option<&Pose>,
         features: Option<&Features>,
+        maps: Option<(&VertexMap, &NormalMap)>,
         outputs: &mut Outputs,
         st: &mut Stages,
     ) -> NodeResult<Flow> {
@@ -317,13 +319,30 @@ impl SurfelNode {
             width: w as u32,
             height: h as u32,
         };
-        scan_from_depth_into(
-            &depth.map.data,
-            &k,
-            self.p.normal_max_step_mm,
-            &mut self.vertices,
-            &mut self.scan_normals,
-        );
+        // The vertex and normal maps: post-processing's when connected, else lifted here.
+        if let Some((v, n)) = maps {
+            if (v.width, v.height, n.width, n.height) != (k.width, k.height, k.width, k.height)
+                || v.points.len() != w * h
+                || n.normals.len() != w * h
+            {
+                return Err(NodeError::msg(format!(
+                    "frame {}: the vertex and normal maps ({}x{}, {}x{}) do not fit the {w}x{h} depth",
+                    frame.index, v.width, v.height, n.width, n.height
+                )));
+            }
+        } else {
+            scan_from_depth_into(
+                &depth.map.data,
+                &k,
+                self.p.normal_max_step_mm,
+                &mut self.vertices,
+                &mut self.scan_normals,
+            );
+        }
+        let (vertices, scan_normals): (&[[f32; 3]], &[[f32; 3]]) = match maps {
+            Some((v, n)) => (&v.points, &n.normals),
+            None => (&self.vertices, &self.scan_normals),
+        };
         st.lap("scan");
         let mut pose = prior.map_or(Isometry3::identity(), |p| p.world_from_camera);
         let lost = prior.is_some_and(|p| p.state == TrackingState::Lost);
@@ -337,7 +356,7 @@ impl SurfelNode {
             for y in (0..h).step_by(stride) {
                 for x in (0..w).step_by(stride) {
                     let i = y * w + x;
-                    let (v, n) = (self.vertices[i], self.scan_normals[i]);
+                    let (v, n) = (vertices[i], scan_normals[i]);
                     if v.iter().chain(&n).all(|c| c.is_finite()) {
                         let c = (pose * Point3::from(vec3(v))).coords;
                         let col = color_at(left, i);
@@ -378,8 +397,8 @@ impl SurfelNode {
                 &m.bindings,
                 &pose,
                 &k,
-                &self.vertices,
-                &self.scan_normals,
+                vertices,
+                scan_normals,
                 self.p.visible_distance_mm,
                 self.p.visible_angle_deg,
             );
@@ -392,7 +411,7 @@ impl SurfelNode {
                     features,
                     &pose,
                     &k,
-                    (&self.vertices, &self.scan_normals),
+                    (vertices, scan_normals),
                     graph,
                     &self.p.correspondences,
                 )
@@ -409,8 +428,8 @@ impl SurfelNode {
                 model: self.subset.view(),
                 scan: Some(Scan {
                     intrinsics: k,
-                    vertices: &self.vertices,
-                    normals: &self.scan_normals,
+                    vertices,
+                    normals: scan_normals,
                 }),
                 field: None,
                 correspondences: &corrs,
@@ -485,8 +504,6 @@ impl SurfelNode {
             let cos_f = self.p.fuse_angle_deg.to_radians().cos();
             // What each sample meets, row by row in parallel (reading the live model only); the
             // updates are then applied in sample order, as one pass over the samples would.
-            let vertices = &self.vertices;
-            let scan_normals = &self.scan_normals;
             let (canon_bindings, fuse_distance) = (&m.bindings, self.p.fuse_distance_mm);
             let hits: Vec<Vec<Sample>> = (0..gh)
                 .into_par_iter()
@@ -681,7 +698,7 @@ impl SurfelNode {
             &m.canon,
             &m.bindings,
             graph,
-            &self.vertices,
+            vertices,
             &k,
             &self.p.correspondences,
         );
@@ -748,6 +765,19 @@ impl Node for SurfelNode {
         let pair = inputs.opt::<StereoFrame>("stereo")?;
         let prior = inputs.opt::<Pose>("pose")?;
         let features = inputs.opt::<Features>("features")?;
+        let maps = match (
+            inputs.opt::<VertexMap>("vertices")?,
+            inputs.opt::<NormalMap>("normals")?,
+        ) {
+            (Some(v), Some(n)) => Some((v, n)),
+            (None, None) => None,
+            _ => {
+                return Err(NodeError::msg(format!(
+                    "frame {}: connect both `vertices` and `normals` (depth.postprocess's maps) or neither",
+                    frame.index
+                )))
+            }
+        };
         let left = pair.map(|p| p.left.as_ref());
         let mut st = Stages::start();
         let flow = self.frame(
@@ -756,6 +786,7 @@ impl Node for SurfelNode {
             left,
             prior.map(|p| p.as_ref()),
             features.map(|f| f.as_ref()),
+            maps.as_ref().map(|(v, n)| (v.as_ref(), n.as_ref())),
             outputs,
             &mut st,
         );
@@ -803,6 +834,16 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
                 "pose",
                 PortType::Pose,
                 "world_from_camera from the tracker (prior); a lost frame is not fused",
+            ),
+            PortSpec::optional(
+                "vertices",
+                PortType::VertexMap,
+                "the depth's camera-frame points (depth.postprocess's `vertices`, with `normals`): used instead of lifting the depth again here, so its `max_normal_step_mm` applies instead of `normal_max_step_mm`",
+            ),
+            PortSpec::optional(
+                "normals",
+                PortType::NormalMap,
+                "the depth's unit normals (depth.postprocess's `normals`, with `vertices`)",
             ),
             PortSpec::optional(
                 "features",
