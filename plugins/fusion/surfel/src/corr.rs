@@ -500,7 +500,9 @@ pub fn anchor(
     cells.par_sort_unstable();
     let cells = &*cells;
     // Each keypoint's anchor, in parallel; kept in keypoint order.
-    let found: Vec<Option<(Vector3<f64>, Vector3<f64>, usize)>> = world
+    // (canonical point, tissue point, surfel) of each keypoint that anchors.
+    type Found = Option<(Vector3<f64>, Vector3<f64>, usize)>;
+    let found: Vec<Found> = world
         .par_iter()
         .map(|w| {
             if !w.iter().all(|c| c.is_finite()) {
