@@ -70,7 +70,6 @@ pub(crate) struct DataAssembly {
     block_nodes: Vec<(u32, u32)>,
     /// Per solved slot: the index of its diagonal block and its node.
     diag: Vec<(u32, u32)>,
-    keyed: Vec<(u32, Coupling)>,
     model_pt: Vec<PointTerm>,
     model_nt: Vec<NodeTerm>,
     corr_pt: Vec<PointTerm>,
@@ -415,28 +414,55 @@ impl DataAssembly {
             CORR,
             &mut problem.correspondences.iter().map(|c| &c.binding),
         );
-        self.keyed.clear();
-        for v in model.iter().chain(std::iter::once(&corr)) {
-            self.keyed.extend_from_slice(v);
-        }
-        // Counting sort by block, stable (point order within a block).
+        // Counting sort by block, stable (point order within a block): each list (a chunk of
+        // model points, then the correspondences) sorted on its own, then each block gathers
+        // its runs list by list, all in parallel (serially this was most of the build).
         let nblocks = sys.blocks.len();
+        let sorted: Vec<(Vec<u32>, Vec<Coupling>)> = model
+            .par_iter()
+            .chain(rayon::iter::once(&corr))
+            .map(|list| {
+                let mut start = vec![0u32; nblocks + 1];
+                for (blk, _) in list {
+                    start[*blk as usize + 1] += 1;
+                }
+                for b in 0..nblocks {
+                    start[b + 1] += start[b];
+                }
+                let mut next = start[..nblocks].to_vec();
+                let mut out = vec![Coupling::default(); list.len()];
+                for &(blk, c) in list {
+                    let p = &mut next[blk as usize];
+                    out[*p as usize] = c;
+                    *p += 1;
+                }
+                (start, out)
+            })
+            .collect();
         self.start.clear();
         self.start.resize(nblocks + 1, 0);
-        for (blk, _) in &self.keyed {
-            self.start[*blk as usize + 1] += 1;
-        }
         for b in 0..nblocks {
-            self.start[b + 1] += self.start[b];
+            let n: u32 = sorted.iter().map(|(s, _)| s[b + 1] - s[b]).sum();
+            self.start[b + 1] = self.start[b] + n;
         }
         self.items.clear();
-        self.items.resize(self.keyed.len(), Coupling::default());
-        let mut next: Vec<u32> = self.start[..nblocks].to_vec();
-        for &(blk, c) in &self.keyed {
-            let p = &mut next[blk as usize];
-            self.items[*p as usize] = c;
-            *p += 1;
+        self.items
+            .resize(self.start[nblocks] as usize, Coupling::default());
+        let mut parts = Vec::with_capacity(nblocks);
+        let mut rest = &mut self.items[..];
+        for b in 0..nblocks {
+            let (head, tail) = rest.split_at_mut((self.start[b + 1] - self.start[b]) as usize);
+            parts.push(head);
+            rest = tail;
         }
+        parts.into_par_iter().enumerate().for_each(|(b, dst)| {
+            let mut at = 0;
+            for (s, v) in &sorted {
+                let run = &v[s[b] as usize..s[b + 1] as usize];
+                dst[at..at + run.len()].copy_from_slice(run);
+                at += run.len();
+            }
+        });
         // Each block's node pair, from the slots.
         let mut node_of_slot = vec![0u32; sys.blocks_solved()];
         for (node, &s) in sys.slot.iter().enumerate() {
