@@ -4,6 +4,7 @@
 //! match across the image on repeated texture.
 
 use misslam_framework::{Descriptors, Keypoint, Match};
+use rayon::prelude::*;
 
 use crate::distance;
 
@@ -108,37 +109,48 @@ pub fn match_guided(
     params: &GuidedParams,
 ) -> Vec<Match> {
     let r2 = params.radius_px * params.radius_px;
+    // Each train point's nearest query within the radius (in parallel: thousands of anchors
+    // per frame in fusion's correspondences), then the best train per query in train order, as
+    // one serial pass would (ties go to the first).
+    let nearest: Vec<Option<(u32, f32)>> = predicted
+        .par_iter()
+        .enumerate()
+        .map(|(j, p)| {
+            let (mut d1, mut d2, mut arg) = (f32::INFINITY, f32::INFINITY, u32::MAX);
+            grid.for_each_near(p[0], p[1], params.radius_px, |i| {
+                let k = &query_keypoints[i as usize];
+                let (dx, dy) = (k.x - p[0], k.y - p[1]);
+                if dx * dx + dy * dy > r2 {
+                    return;
+                }
+                if params.max_octave_gap >= 0
+                    && (k.octave - train_octaves.get(j).copied().unwrap_or(k.octave)).abs()
+                        > params.max_octave_gap
+                {
+                    return;
+                }
+                let d = distance(query, i as usize, train, j);
+                if d < d1 {
+                    d2 = d1;
+                    d1 = d;
+                    arg = i;
+                } else if d < d2 {
+                    d2 = d;
+                }
+            });
+            if arg == u32::MAX || d1 > params.max_distance {
+                return None;
+            }
+            if params.ratio < 1.0 && d2.is_finite() && d1 >= params.ratio * d2 {
+                return None;
+            }
+            Some((arg, d1))
+        })
+        .collect();
     // Best train per query: (distance, train index).
     let mut best: Vec<(f32, u32)> = vec![(f32::INFINITY, u32::MAX); query_keypoints.len()];
-    for (j, p) in predicted.iter().enumerate() {
-        let (mut d1, mut d2, mut arg) = (f32::INFINITY, f32::INFINITY, u32::MAX);
-        grid.for_each_near(p[0], p[1], params.radius_px, |i| {
-            let k = &query_keypoints[i as usize];
-            let (dx, dy) = (k.x - p[0], k.y - p[1]);
-            if dx * dx + dy * dy > r2 {
-                return;
-            }
-            if params.max_octave_gap >= 0
-                && (k.octave - train_octaves.get(j).copied().unwrap_or(k.octave)).abs()
-                    > params.max_octave_gap
-            {
-                return;
-            }
-            let d = distance(query, i as usize, train, j);
-            if d < d1 {
-                d2 = d1;
-                d1 = d;
-                arg = i;
-            } else if d < d2 {
-                d2 = d;
-            }
-        });
-        if arg == u32::MAX || d1 > params.max_distance {
-            continue;
-        }
-        if params.ratio < 1.0 && d2.is_finite() && d1 >= params.ratio * d2 {
-            continue;
-        }
+    for (j, n) in nearest.into_iter().enumerate() {
+        let Some((arg, d1)) = n else { continue };
         let slot = &mut best[arg as usize];
         if d1 < slot.0 {
             *slot = (d1, j as u32);
