@@ -89,6 +89,8 @@ struct Step {
     evals: usize,
     /// Calls made on a pipelined level's own threads (named `misslam-level...`).
     on_level_threads: usize,
+    /// The most threads rayon had for a call's parallel work.
+    pool_threads: usize,
 }
 
 impl Node for Step {
@@ -162,6 +164,7 @@ impl Node for Step {
         {
             self.on_level_threads += 1;
         }
+        self.pool_threads = self.pool_threads.max(rayon::current_num_threads());
         Ok(Flow::Continue)
     }
 
@@ -170,6 +173,10 @@ impl Node for Step {
         ctx.report_eval(
             &format!("{}.on_level_threads", ctx.id),
             self.on_level_threads as f64,
+        );
+        ctx.report_eval(
+            &format!("{}.pool_threads", ctx.id),
+            self.pool_threads as f64,
         );
         Ok(())
     }
@@ -203,6 +210,7 @@ fn registry(log: Log) -> Registry {
                 inside: Arc::clone(&inside),
                 evals: 0,
                 on_level_threads: 0,
+                pool_threads: 0,
             })
         },
     ))
@@ -526,6 +534,40 @@ fn the_pipelined_schedule_overlaps_frames() {
         .collect();
     assert_eq!(skipped, [(2, "join"), (3, "left")]);
     assert_eq!(serial.metrics.eval["right.on_level_threads"], 0.0);
+}
+
+#[test]
+fn each_pipelined_level_has_a_pool_of_level_threads() {
+    // By default half the cores (at least 2), so the levels' pools do not oversubscribe the
+    // machine; `graph.level_threads` sets it; one frame at a time there are no level pools.
+    let cores = rayon::current_num_threads();
+    for (sets, want) in [
+        (&["graph.pipeline=3"][..], cores.div_ceil(2).max(2)),
+        (&["graph.pipeline=3", "graph.level_threads=3"][..], 3),
+    ] {
+        let (report, _) = run(DIAMOND, sets, "level_threads");
+        assert!(report.error.is_none(), "{sets:?}");
+        assert_eq!(report.metrics.level_threads, want, "{sets:?}");
+        for node in ["left", "right", "join"] {
+            assert_eq!(
+                report.metrics.eval[&format!("{node}.pool_threads")],
+                want as f64,
+                "{sets:?}: {node}"
+            );
+        }
+    }
+    let (serial, _) = run(DIAMOND, &["graph.level_threads=3"], "level_threads_serial");
+    assert_eq!(serial.metrics.level_threads, 0);
+    let err = graph::parse(
+        Path::new("test.toml"),
+        DIAMOND,
+        &registry(Log::default()),
+        &["graph.level_threads=-1".to_owned()],
+    )
+    .err()
+    .expect("a negative thread count is refused")
+    .to_string();
+    assert!(err.contains("graph.level_threads"), "{err}");
 }
 
 #[test]

@@ -95,6 +95,10 @@ pub struct RunMetrics {
     /// Frames in the graph at once (`[graph] pipeline`; 1 when the levels ran one frame at a
     /// time).
     pub pipeline: u32,
+    /// Threads of each level's pool when the levels ran as a pipeline (`[graph] level_threads`,
+    /// resolved); 0 when they ran one frame at a time.
+    #[serde(default)]
+    pub level_threads: usize,
     /// Set when the run stopped on an error: what happened.
     pub aborted: Option<String>,
     /// The parameters every node ran with, after defaults and overrides.
@@ -198,6 +202,7 @@ mod tests {
     fn the_summary_gives_the_throughput_and_the_latency() {
         let mut m = RunMetrics {
             pipeline: 2,
+            level_threads: 4,
             ..Default::default()
         };
         assert!(

@@ -212,6 +212,7 @@ impl Runtime {
         let mut rerun_ms = Vec::new();
         let mut error: Option<RunError> = None;
         let pipelined = self.graph.pipeline > 1 && self.levels.len() > 1;
+        let level_threads = self.graph.level_pool_threads(rayon::current_num_threads());
 
         // start
         for slot in &mut self.slots {
@@ -270,6 +271,7 @@ impl Runtime {
                     levels: &self.levels,
                     frames: &frames,
                     in_flight: self.graph.pipeline,
+                    level_threads,
                     policy: self.graph.on_error,
                 };
                 pipeline::run(&mut self.slots, &schedule, &env, &mut collector);
@@ -333,6 +335,7 @@ impl Runtime {
             wall_s: started.elapsed().as_secs_f64(),
             aborted: error.as_ref().map(|e| e.to_string()),
             pipeline: if pipelined { self.graph.pipeline } else { 1 },
+            level_threads: if pipelined { level_threads } else { 0 },
             ..Default::default()
         };
         for (slot, spec) in self.slots.iter().zip(&self.graph.nodes) {

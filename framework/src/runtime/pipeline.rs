@@ -5,9 +5,11 @@
 //! schedule; the run's throughput approaches that of its slowest level instead of the sum of
 //! all of them, given the cores.
 //!
-//! Each level runs its nodes' parallel work (rayon) on a thread pool of its own, as many threads
-//! as the global pool has: on one shared pool the bottleneck level waited behind the others'
-//! tasks (on 2 cores, 320x240: 39 to 41 ms between frames against 31 to 33 with a pool each).
+//! Each level runs its nodes' parallel work (rayon) on a thread pool of its own: on one shared
+//! pool the bottleneck level waited behind the others' tasks (on 2 cores, 320x240: 39 to 41 ms
+//! between frames against 31 to 33 with a pool each). A pool has `[graph] level_threads`
+//! threads, by default half the cores ([`crate::graph::Graph::level_pool_threads`]): pools of
+//! all the cores each oversubscribed a 16-core machine.
 //!
 //! A frame that ends the run (end of the stream, or a failure under `on_error = "abort"`) stops
 //! it at that frame: the frames before it complete, and the ones after it that earlier levels
@@ -29,6 +31,8 @@ pub(crate) struct Schedule<'a> {
     pub(crate) frames: &'a Frames,
     /// Frames in the graph at once (at least 2).
     pub(crate) in_flight: u32,
+    /// Threads of each level's pool.
+    pub(crate) level_threads: usize,
     pub(crate) policy: ErrorPolicy,
 }
 
@@ -74,7 +78,7 @@ pub(crate) fn run(slots: &mut [Slot], schedule: &Schedule, env: &Env, collector:
                 // stages queued behind a depth pass), where with a pool each the system's
                 // scheduler shares the cores among the levels.
                 let pool = rayon::ThreadPoolBuilder::new()
-                    .num_threads(rayon::current_num_threads())
+                    .num_threads(schedule.level_threads)
                     .thread_name(move |i| format!("misslam-level{offset}-{i}"))
                     .build();
                 match pool {
