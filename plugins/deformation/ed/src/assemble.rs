@@ -70,6 +70,9 @@ pub(crate) struct DataAssembly {
     block_nodes: Vec<(u32, u32)>,
     /// Per solved slot: the index of its diagonal block and its node.
     diag: Vec<(u32, u32)>,
+    /// Per list of couplings (a chunk of model points, then the correspondences): its block
+    /// starts and its couplings sorted by block (buffers kept across solves).
+    sorted: Vec<(Vec<u32>, Vec<Coupling>)>,
     model_pt: Vec<PointTerm>,
     model_nt: Vec<NodeTerm>,
     corr_pt: Vec<PointTerm>,
@@ -418,27 +421,32 @@ impl DataAssembly {
         // model points, then the correspondences) sorted on its own, then each block gathers
         // its runs list by list, all in parallel (serially this was most of the build).
         let nblocks = sys.blocks.len();
-        let sorted: Vec<(Vec<u32>, Vec<Coupling>)> = model
-            .par_iter()
-            .chain(rayon::iter::once(&corr))
-            .map(|list| {
-                let mut start = vec![0u32; nblocks + 1];
-                for (blk, _) in list {
+        let lists: Vec<&Vec<(u32, Coupling)>> =
+            model.iter().chain(std::iter::once(&corr)).collect();
+        self.sorted.resize_with(lists.len(), Default::default);
+        let sorted = &mut self.sorted[..lists.len()];
+        sorted
+            .par_iter_mut()
+            .zip(lists.par_iter())
+            .for_each(|((start, out), list)| {
+                start.clear();
+                start.resize(nblocks + 1, 0);
+                for (blk, _) in list.iter() {
                     start[*blk as usize + 1] += 1;
                 }
                 for b in 0..nblocks {
                     start[b + 1] += start[b];
                 }
                 let mut next = start[..nblocks].to_vec();
-                let mut out = vec![Coupling::default(); list.len()];
-                for &(blk, c) in list {
+                out.clear();
+                out.resize(list.len(), Coupling::default());
+                for &(blk, c) in list.iter() {
                     let p = &mut next[blk as usize];
                     out[*p as usize] = c;
                     *p += 1;
                 }
-                (start, out)
-            })
-            .collect();
+            });
+        let sorted = &self.sorted[..lists.len()];
         self.start.clear();
         self.start.resize(nblocks + 1, 0);
         for b in 0..nblocks {
@@ -457,7 +465,7 @@ impl DataAssembly {
         }
         parts.into_par_iter().enumerate().for_each(|(b, dst)| {
             let mut at = 0;
-            for (s, v) in &sorted {
+            for (s, v) in sorted {
                 let run = &v[s[b] as usize..s[b + 1] as usize];
                 dst[at..at + run.len()].copy_from_slice(run);
                 at += run.len();
