@@ -331,6 +331,16 @@ pub(crate) fn run(which: BenchCommand) -> anyhow::Result<()> {
                 r.gpu_ms, r.runs, r.gpu_min_ms, r.cpu_threads, r.cpu_ms, r.speedup
             );
             out!(
+                "GPU stream, two pairs in flight: {:.3} ms per pair (median of 3 streams of {}), {}",
+                r.stream_ms,
+                r.runs.max(2),
+                if r.stream_identical {
+                    "every pair identical to the pair alone"
+                } else {
+                    "SOME PAIRS DIFFER from the pair alone"
+                }
+            );
+            out!(
                 "stages ({}; {}; {}): upload {:.3}, census {:.3}, aggregate {:.3}, select {:.3}, median {:.3}, readback {:.3} (submission {:.3}, host copy {:.3}), speckles {:.3}, finish {:.3}, total {:.3} ms",
                 if s.gpu_timestamps { "GPU timestamps" } else { "each waited for" },
                 match (s.summed_volumes, s.atomics64) {

@@ -174,6 +174,62 @@ fn sgm_kernels_take_changed_parameters_on_the_same_buffers() {
     );
 }
 
+/// Pairs submitted two at a time (the next uploaded and submitted before the one before is read)
+/// come back in order, each as `run` gives it alone; a third submission, a collection with
+/// none in flight, `run` with a pair in flight and a pair of another size while one is in
+/// flight are errors that say what to do, and the kernels still run after them.
+#[test]
+fn sgm_pairs_in_flight_come_back_in_order_as_run_gives_them() {
+    use misslam_depth_sgm::gpu::{SgmGpu, IN_FLIGHT};
+    use misslam_depth_sgm::sgm::SgmParams;
+    let Some(ctx) = gpu() else { return };
+    let (w, h) = (97, 41);
+    let p = SgmParams::default();
+    let pairs: Vec<_> = (0..5).map(|k| stereo_scene(w, h, 11 + 3 * k)).collect();
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    let alone: Vec<_> = pairs
+        .iter()
+        .map(|(l, r)| bits(&SgmGpu::new(&ctx).run(&ctx, l, r, w, h, None, &p).unwrap().0))
+        .collect();
+    for (k, a) in alone.iter().enumerate().skip(1) {
+        assert_ne!(a, &alone[0], "pair {k} differs from pair 0");
+    }
+    let mut k = SgmGpu::new(&ctx);
+    let err = k.collect(&ctx).unwrap_err();
+    assert!(err.contains("no GPU SGM pair in flight"), "{err}");
+    let mut got = Vec::new();
+    let mut next = 0;
+    while got.len() < pairs.len() {
+        while next < pairs.len() && k.in_flight() < IN_FLIGHT {
+            let (l, r) = &pairs[next];
+            k.submit(&ctx, l, r, w, h, None, &p).unwrap();
+            next += 1;
+        }
+        if next < pairs.len() {
+            let (l, r) = &pairs[next];
+            let err = k.submit(&ctx, l, r, w, h, None, &p).unwrap_err();
+            assert!(err.contains("collect one first"), "{err}");
+            let err = k.run(&ctx, l, r, w, h, None, &p).unwrap_err();
+            assert!(err.contains("collect them before"), "{err}");
+        }
+        got.push(bits(&k.collect(&ctx).unwrap().0));
+    }
+    assert_eq!(k.in_flight(), 0);
+    for (n, (g, a)) in got.iter().zip(&alone).enumerate() {
+        assert!(g == a, "pair {n} in flight differs from its run alone");
+    }
+    let (l, r) = &pairs[0];
+    k.submit(&ctx, l, r, w, h, None, &p).unwrap();
+    let (l2, r2) = stereo_scene(w + 8, h, 2);
+    let err = k.submit(&ctx, &l2, &r2, w + 8, h, None, &p).unwrap_err();
+    assert!(err.contains("collect it first"), "{err}");
+    assert_eq!(bits(&k.collect(&ctx).unwrap().0), alone[0]);
+    assert_eq!(
+        bits(&k.run(&ctx, l, r, w, h, None, &p).unwrap().0),
+        alone[0]
+    );
+}
+
 #[test]
 fn sgm_kernels_match_the_cpu_path() {
     use misslam_depth_sgm::gpu::{Breakdown, SgmGpu};
@@ -512,6 +568,7 @@ fn bench_sgm_gpu_reports_parity_and_stages() {
     assert_eq!(r.validity_differs, 0, "{r:?}");
     assert!(r.max_abs_diff_px <= 1e-4, "{r:?}");
     assert!(r.density_pct > 50.0, "{r:?}");
+    assert!(r.stream_identical && r.stream_ms > 0.0, "{r:?}");
     let s = r.stages_ms;
     assert!(
         s.aggregate_ms > 0.0 && s.select_ms > 0.0 && s.total_ms > 0.0,

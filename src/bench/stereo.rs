@@ -184,6 +184,13 @@ pub struct SgmGpuBench {
     pub gpu_ms: f64,
     /// Fastest of the same runs, ms.
     pub gpu_min_ms: f64,
+    /// Wall time per pair of a stream of `runs` pairs with two in flight
+    /// ([`misslam_depth_sgm::gpu::SgmGpu::submit`]: the next pair uploaded and submitted before
+    /// the one before is read back), upload and readback included, ms: the throughput of a
+    /// video, where `gpu_ms` is the latency of one pair. Median of three streams.
+    pub stream_ms: f64,
+    /// Whether every streamed pair gave the bits of `gpu_ms`'s runs.
+    pub stream_identical: bool,
     /// Median of each stage, ms, over runs of their own: from GPU timestamps where the adapter
     /// has them (a pass per stage, so their `total_ms` is a little above `gpu_ms`), else with
     /// every stage waited for (their sum well above `gpu_ms`).
@@ -277,6 +284,25 @@ pub fn sgm_gpu(
         Ok::<(), String>(())
     })?;
     let gpu_min_ms = totals.iter().copied().fold(f64::INFINITY, f64::min);
+    // A stream: the next pair submitted before the one before is collected.
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    let want = bits(&gpu_out);
+    let mut stream_identical = true;
+    let n = repeat.max(2);
+    let mut streams = Vec::new();
+    for _ in 0..3 {
+        let t = Instant::now();
+        kernels.submit(&ctx, &left, &right, w, h, None, p)?;
+        for k in 0..n {
+            if k + 1 < n {
+                kernels.submit(&ctx, &left, &right, w, h, None, p)?;
+            }
+            let (d, _) = kernels.collect(&ctx)?;
+            stream_identical &= bits(&d) == want;
+        }
+        streams.push(t.elapsed().as_secs_f64() * 1e3 / n as f64);
+    }
+    let stream_ms = median(streams);
     // The breakdown, in runs of their own: timestamps where the adapter has them, else each
     // stage waited for.
     kernels.set_breakdown(Breakdown::Timestamps);
@@ -320,6 +346,8 @@ pub fn sgm_gpu(
         runs: repeat.max(1),
         gpu_ms,
         gpu_min_ms,
+        stream_ms,
+        stream_identical,
         stages_ms,
         cpu_ms,
         cpu_threads: rayon::current_num_threads(),

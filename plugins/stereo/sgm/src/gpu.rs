@@ -18,6 +18,9 @@
 //! 5. speckle removal by a parallel union-find, each 16x16 tile in workgroup memory first;
 //! 6. the final map's bits, NaN where invalid, so the readback is a plain copy.
 //!
+//! [`SgmGpu::run`] does one pair; [`SgmGpu::submit`] and [`SgmGpu::collect`] keep two in flight,
+//! so that a stream of pairs runs at the pace of the GPU instead of the GPU's time plus the
+//! host's (upload, submission, the wait and the copy of the map).
 //! The buffers live across calls (reallocated when the size or the disparity layout changes);
 //! every kernel runs in one compute pass, or a pass per stage timed by GPU timestamps
 //! ([`SgmGpu::set_breakdown`]). The layout for a configuration and an adapter is
@@ -107,7 +110,9 @@ struct Frame {
     layout: Layout,
     images: wgpu::Buffer,
     mask: wgpu::Buffer,
-    staging: wgpu::Buffer,
+    /// Two readback buffers, so that a pair can be submitted while the one before is still
+    /// being read ([`SgmGpu::submit`]).
+    staging: [wgpu::Buffer; 2],
     census_u: wgpu::Buffer,
     aggregate_u: wgpu::Buffer,
     select_u: wgpu::Buffer,
@@ -122,7 +127,7 @@ struct Frame {
     /// Speckle bind groups of the five entry points, on the median's output and on the
     /// selection's (median off).
     speckle_bg: [Vec<wgpu::BindGroup>; 2],
-    /// The final map's bits (NaN where invalid), copied to `staging`.
+    /// The final map's bits (NaN where invalid), copied to a `staging` buffer.
     bits: wgpu::Buffer,
     /// `finish` on the median's output and on the selection's.
     finish_bg: [wgpu::BindGroup; 2],
@@ -190,6 +195,30 @@ pub struct SgmGpu {
     /// What each uniform buffer of the frame last received (written again only when it
     /// changes: on the H100 the upload went from 0.09 to 0.12 ms to 0.06).
     uniforms: [Vec<u32>; 5],
+    /// Pairs submitted and not yet collected, oldest first (at most [`IN_FLIGHT`]).
+    in_flight: std::collections::VecDeque<Pending>,
+    /// The readback buffer of the next submission.
+    next_slot: usize,
+}
+
+/// The most pairs [`SgmGpu::submit`] keeps in flight (one per readback buffer).
+pub const IN_FLIGHT: usize = 2;
+
+type MapResult = Result<(), wgpu::BufferAsyncError>;
+
+/// A submitted pair: its readback buffer, its submission, the mappings requested (the map,
+/// then the timestamps where they were taken) and its timing so far.
+struct Pending {
+    slot: usize,
+    index: wgpu::SubmissionIndex,
+    mapped: Vec<std::sync::mpsc::Receiver<MapResult>>,
+    bytes: usize,
+    timing: SgmGpuTiming,
+    stage_ms: [f64; STAGES as usize],
+    /// Stages that ran (the others keep 0).
+    ran: [bool; STAGES as usize],
+    t_all: std::time::Instant,
+    t_submit: std::time::Instant,
 }
 
 /// Writes `data` into uniform buffer `buf` unless `last` says it already holds it.
@@ -261,6 +290,8 @@ impl SgmGpu {
             int64_atomics: true,
             host: Vec::new(),
             uniforms: Default::default(),
+            in_flight: Default::default(),
+            next_slot: 0,
         }
     }
 
@@ -364,7 +395,7 @@ impl SgmGpu {
         let parent = buffer("sgm speckle parent", px * 4, U::STORAGE);
         let size = buffer("sgm speckle size", px * 4, U::STORAGE);
         let bits = buffer("sgm bits", px * 4, U::STORAGE | U::COPY_SRC);
-        let staging = buffer("sgm readback", px * 4, U::MAP_READ | U::COPY_DST);
+        let staging = [0, 1].map(|_| buffer("sgm readback", px * 4, U::MAP_READ | U::COPY_DST));
         let uniform = |label: &str, bytes: u64| buffer(label, bytes, U::UNIFORM | U::COPY_DST);
         let census_u = uniform("sgm census params", 32);
         let aggregate_u = uniform("sgm aggregate params", 48 + 8 * 16);
@@ -457,6 +488,8 @@ impl SgmGpu {
     }
 
     /// Disparity of the left image (px, NaN invalid): the contract of [`crate::sgm::sgm`].
+    /// One pair at a time: [`SgmGpu::submit`] then [`SgmGpu::collect`] (an error while pairs
+    /// submitted on their own are in flight).
     #[allow(clippy::too_many_arguments)]
     pub fn run(
         &mut self,
@@ -468,7 +501,49 @@ impl SgmGpu {
         valid: Option<&[u8]>,
         p: &SgmParams,
     ) -> Result<(Vec<f32>, SgmGpuTiming), String> {
+        if !self.in_flight.is_empty() {
+            return Err(format!(
+                "{} GPU SGM pair(s) submitted and not collected: collect them before `run`",
+                self.in_flight.len()
+            ));
+        }
+        self.submit(ctx, left, right, w, h, valid, p)?;
+        self.collect(ctx)
+    }
+
+    /// Pairs submitted and not yet collected.
+    pub fn in_flight(&self) -> usize {
+        self.in_flight.len()
+    }
+
+    /// Uploads a pair and submits its kernels without waiting for them, so that the host can
+    /// upload and submit the next pair, or read the one before, while the GPU works: a stream
+    /// of pairs runs at the pace of the slower of the two instead of their sum. At most
+    /// [`IN_FLIGHT`] pairs, of one size and parameters' layout, and with the breakdown off
+    /// when more than one; [`SgmGpu::collect`] returns them in order.
+    #[allow(clippy::too_many_arguments)]
+    pub fn submit(
+        &mut self,
+        ctx: &GpuContext,
+        left: &[u8],
+        right: &[u8],
+        w: usize,
+        h: usize,
+        valid: Option<&[u8]>,
+        p: &SgmParams,
+    ) -> Result<(), String> {
         let t_all = std::time::Instant::now();
+        if self.in_flight.len() >= IN_FLIGHT {
+            return Err(format!(
+                "{IN_FLIGHT} GPU SGM pairs are in flight already: collect one first"
+            ));
+        }
+        if !self.in_flight.is_empty() && self.breakdown != Breakdown::Off {
+            return Err(
+                "a timed GPU SGM pair (breakdown on) runs alone: collect the pair in flight first"
+                    .into(),
+            );
+        }
         check_pair(left, right, w, h, valid, p)?;
         if p.max_disparity > MAX_D {
             return Err(format!(
@@ -489,6 +564,15 @@ impl SgmGpu {
         }
         let dirs: &[(isize, isize)] = if p.paths == 8 { &DIRS } else { &DIRS4 };
         let layout = self.layout(ctx, p, w, h, dirs.len())?;
+        let same_frame = self
+            .frame
+            .as_ref()
+            .is_some_and(|f| (f.w, f.h, f.dirs, f.layout) == (w, h, dirs.len(), layout));
+        if !self.in_flight.is_empty() && !same_frame {
+            return Err(format!(
+                "a {w}x{h} GPU SGM pair needs other buffers than the pair in flight: collect it first"
+            ));
+        }
         self.pipelines(ctx, layout, dirs.len() as u32)?;
         self.frame(ctx, w, h, dirs.len(), layout);
         let (agg, sel) = &self.specialised[&(layout, dirs.len() as u32)];
@@ -678,18 +762,20 @@ impl SgmGpu {
                 enc = ctx.device.create_command_encoder(&Default::default());
             }
         }
-        enc.copy_buffer_to_buffer(&f.bits, 0, &f.staging, 0, bytes);
+        let slot = self.next_slot;
+        let staging = &f.staging[slot];
+        enc.copy_buffer_to_buffer(&f.bits, 0, staging, 0, bytes);
         if let Some(t) = ts {
             enc.resolve_query_set(&t.set, 0..2 * STAGES, &t.resolve, 0);
             enc.copy_buffer_to_buffer(&t.resolve, 0, &t.read, 0, u64::from(2 * STAGES) * 8);
         }
         let t_submit = std::time::Instant::now();
-        q.submit(Some(enc.finish()));
+        let index = q.submit(Some(enc.finish()));
         timing.submit_ms = t_submit.elapsed().as_secs_f64() * 1e3;
-        // Both mappings are requested, then one wait.
-        let mut buffers = vec![&f.staging];
+        // Both mappings are requested now; `collect` waits for them.
+        let mut buffers = vec![staging];
         buffers.extend(ts.map(|t| &t.read));
-        let mapped: Vec<_> = buffers
+        let mapped = buffers
             .iter()
             .map(|buf| {
                 let (tx, rx) = std::sync::mpsc::channel();
@@ -699,10 +785,56 @@ impl SgmGpu {
                 rx
             })
             .collect();
-        ctx.wait().map_err(gpu)?;
+        timing.summed_volumes = layout.summed;
+        timing.subgroups = layout.lanes > 0;
+        timing.atomics64 = layout.atomics64;
+        self.next_slot = (slot + 1) % IN_FLIGHT;
+        self.in_flight.push_back(Pending {
+            slot,
+            index,
+            mapped,
+            bytes: bytes as usize,
+            timing,
+            stage_ms,
+            ran: std::array::from_fn(|k| stages.get(k).is_some_and(|j| !j.is_empty())),
+            t_all,
+            t_submit,
+        });
+        Ok(())
+    }
+
+    /// Waits for the oldest pair in flight ([`SgmGpu::submit`]) and returns its disparity
+    /// (px, NaN invalid) and timing; `total_ms` runs from its submission call to here, so in a
+    /// stream it also holds the time spent on the pairs around it.
+    pub fn collect(&mut self, ctx: &GpuContext) -> Result<(Vec<f32>, SgmGpuTiming), String> {
+        let Pending {
+            slot,
+            index,
+            mapped,
+            bytes,
+            mut timing,
+            mut stage_ms,
+            ran,
+            t_all,
+            t_submit,
+        } = self
+            .in_flight
+            .pop_front()
+            .ok_or("no GPU SGM pair in flight to collect")?;
+        let f = self.frame.as_ref().ok_or("no GPU buffers")?;
+        let q = &ctx.queue;
+        let ts = mapped.len() > 1;
+        ctx.device
+            .poll(wgpu::PollType::Wait {
+                submission_index: Some(index),
+                timeout: None,
+            })
+            .map_err(|e| e.to_string())?;
         let t_copy = std::time::Instant::now();
         let mut d = Vec::new();
         let mut stamps = Vec::new();
+        let mut buffers = vec![&f.staging[slot]];
+        buffers.extend(self.timestamps.as_ref().filter(|_| ts).map(|t| &t.read));
         for (k, (buf, rx)) in buffers.iter().zip(mapped).enumerate() {
             rx.recv()
                 .map_err(|e| e.to_string())?
@@ -715,7 +847,7 @@ impl SgmGpu {
                 if k == 0 {
                     // NaN where invalid already (`finish`): a plain copy. (Split over rayon's
                     // threads it took 0.31 ms on the H100 machine instead of 0.19.)
-                    d = bytemuck::pod_collect_to_vec(&view[..bytes as usize]);
+                    d = bytemuck::pod_collect_to_vec(&view[..bytes]);
                 } else {
                     stamps = view
                         .chunks_exact(8)
@@ -728,10 +860,10 @@ impl SgmGpu {
         let after_submit = t_submit.elapsed().as_secs_f64() * 1e3;
         timing.copy_ms = t_copy.elapsed().as_secs_f64() * 1e3;
         let mut kernels = 0.0;
-        if ts.is_some() {
+        if ts {
             let period = f64::from(q.get_timestamp_period()) * 1e-6;
             for (k, ms) in stage_ms.iter_mut().enumerate() {
-                if !stages[k].is_empty() {
+                if ran[k] {
                     *ms = stamps[2 * k + 1].saturating_sub(stamps[2 * k]) as f64 * period;
                     kernels += *ms;
                 }
@@ -747,9 +879,6 @@ impl SgmGpu {
             timing.finish_ms,
         ] = stage_ms;
         timing.readback_ms = (after_submit - kernels).max(0.0);
-        timing.summed_volumes = layout.summed;
-        timing.subgroups = layout.lanes > 0;
-        timing.atomics64 = layout.atomics64;
         timing.total_ms = t_all.elapsed().as_secs_f64() * 1e3;
         Ok((d, timing))
     }
