@@ -124,6 +124,47 @@ enum Command {
         #[command(subcommand)]
         which: BenchCommand,
     },
+    /// The thesis's observability study (chapter 6): a scope moving inside a deforming planar
+    /// organ; odometry, static, ED-based and time-series-prior SLAM by Monte Carlo (RMSE of
+    /// position and heading), and the rank of each one's Fisher information without odometry.
+    Observability {
+        /// Organs, comma-separated: heart, stomach, liver, lung.
+        #[arg(long, default_value = "heart,stomach,liver,lung")]
+        organs: String,
+        /// Monte Carlo runs per organ (seeds `seed` .. `seed + runs - 1`).
+        #[arg(long, default_value_t = 20)]
+        runs: usize,
+        /// Steps per run.
+        #[arg(long, default_value_t = 72)]
+        steps: usize,
+        /// Initial steps with the scope still (E_ini; the time series is fitted there).
+        #[arg(long, default_value_t = 24)]
+        static_steps: usize,
+        /// Features (wall points).
+        #[arg(long, default_value_t = 16)]
+        features: usize,
+        /// Observation noise per coordinate, mm.
+        #[arg(long, default_value_t = 0.3)]
+        obs_sigma_mm: f64,
+        /// Standard deviation of the time-series prior E_f, mm.
+        #[arg(long, default_value_t = 0.01)]
+        ts_sigma_mm: f64,
+        /// The time series' order (0: 2H + 1 for the organ's H frequencies).
+        #[arg(long, default_value_t = 0)]
+        order: usize,
+        /// Hold the coefficients fitted on the still period instead of estimating them.
+        #[arg(long)]
+        fixed_coefficients: bool,
+        /// Steps of the rank test's scene (half of them still).
+        #[arg(long, default_value_t = 16)]
+        rank_steps: usize,
+        /// Seed of the first run.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Write the figures as JSON here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
 }
 
 #[derive(Subcommand)]
@@ -417,6 +458,48 @@ fn run(command: Command) -> anyhow::Result<()> {
                     "{n} run(s) failed (their errors are in ablation.json)"
                 )),
             }
+        }
+        Command::Observability {
+            organs,
+            runs,
+            steps,
+            static_steps,
+            features,
+            obs_sigma_mm,
+            ts_sigma_mm,
+            order,
+            fixed_coefficients,
+            rank_steps,
+            seed,
+            out,
+        } => {
+            use misslam_eval_observability as obs;
+            let organs = organs
+                .split(',')
+                .map(|o| obs::scene::Organ::parse(o.trim()))
+                .collect::<Result<Vec<_>, _>>()
+                .map_err(|e| anyhow::anyhow!("--organs: {e}"))?;
+            let p = obs::EstimatorParams {
+                ts_sigma_mm,
+                order,
+                estimate_coefficients: !fixed_coefficients,
+                ..Default::default()
+            };
+            let scene = |organ| obs::scene::SceneParams {
+                steps,
+                static_steps,
+                features,
+                obs_sigma_mm,
+                seed,
+                ..obs::scene::SceneParams::new(organ)
+            };
+            let study = obs::run_study(&organs, scene, &p, runs, rank_steps)
+                .map_err(|e| anyhow::anyhow!(e))?;
+            print!("{}", study.table());
+            if let Some(path) = out {
+                write_json(&path, &study)?;
+            }
+            Ok(())
         }
         Command::Validate { graph: path, set } => {
             let g = graph::load(&path, &registry, &set)?;

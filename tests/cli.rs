@@ -587,3 +587,43 @@ fn ablate_runs_every_variant_and_seed_and_keeps_every_result() {
     assert_eq!(out.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&out.stderr).contains("expected KEY=VALUE"));
 }
+
+/// `misslam observability` prints its table and writes the JSON; an unknown organ is one line
+/// naming the option.
+#[test]
+fn observability_study_prints_the_table_and_writes_json() {
+    let dir = std::env::temp_dir().join(format!("misslam-obs-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let json = dir.join("obs.json");
+    let out = misslam()
+        .args(["observability", "--organs", "liver", "--runs", "2", "--out"])
+        .arg(&json)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{text} {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(
+        text.contains("liver (2 runs") && text.contains("time_series"),
+        "{text}"
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let organ = &v["organs"][0];
+    assert_eq!(organ["organ"], "liver");
+    assert_eq!(organ["methods"].as_array().unwrap().len(), 4);
+    assert_eq!(organ["rank"][1]["method"], "ed");
+    assert_eq!(organ["rank"][1]["deficiency"], 24);
+    assert_eq!(organ["rank"][2]["deficiency"], 0);
+    let bad = misslam()
+        .args(["observability", "--organs", "heart,spleen"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(!bad.status.success());
+    assert!(err.contains("--organs: unknown organ `spleen`"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

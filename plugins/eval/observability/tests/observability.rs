@@ -1,0 +1,192 @@
+//! The observability study: the simulation's motion model, the recurrence's fit, the rank of
+//! each estimator's Fisher information, recovery from exact observations, the Monte Carlo
+//! ordering, and named errors for bad parameters.
+#![allow(clippy::unwrap_used)] // test code: a failed unwrap is the test failing
+
+use misslam_eval_observability::scene::{Organ, Scene, SceneParams};
+use misslam_eval_observability::{
+    errors, estimate, fit_recurrence, information_rank, study_organ, EstimatorParams, Method,
+};
+
+#[test]
+fn every_organ_moves_by_its_order_2h_plus_1_recurrence() {
+    for organ in Organ::ALL {
+        let s = Scene::simulate(&SceneParams::new(organ)).unwrap();
+        let c = s.true_recurrence();
+        assert_eq!(c.len(), 2 * organ.omegas().len() + 1, "{organ:?}");
+        assert!(
+            (c.iter().sum::<f64>() - 1.0).abs() < 1e-9,
+            "{organ:?}: {c:?}"
+        );
+        let mut worst = 0.0f64;
+        for n in c.len()..s.params.steps {
+            for j in 0..s.params.features {
+                let mut pred = s.truth[n][j] * 0.0;
+                for (i, ci) in c.iter().enumerate() {
+                    pred += s.truth[n - 1 - i][j] * *ci;
+                }
+                worst = worst.max((pred - s.truth[n][j]).norm());
+            }
+        }
+        assert!(worst < 1e-9, "{organ:?}: {worst}");
+        // The motion is not negligible: the wall moves by millimetres.
+        let span = (0..s.params.steps)
+            .map(|n| (s.truth[n][0] - s.rest[0]).norm())
+            .fold(0.0, f64::max);
+        assert!(span > 1.0, "{organ:?}: {span}");
+    }
+}
+
+#[test]
+fn noise_free_still_period_gives_the_true_coefficients() {
+    for organ in [Organ::Heart, Organ::Liver] {
+        let s = Scene::simulate(&SceneParams {
+            obs_sigma_mm: 0.0,
+            ..SceneParams::new(organ)
+        })
+        .unwrap();
+        let want = s.true_recurrence();
+        let got = fit_recurrence(&s, want.len(), 0.0).unwrap();
+        for (g, w) in got.iter().zip(&want) {
+            assert!((g - w).abs() < 1e-6, "{organ:?}: {got:?} against {want:?}");
+        }
+    }
+}
+
+/// Without odometry a rigid motion of all the nodes, undone by the pose, is invisible at every
+/// moving step: ED lacks 3 ranks per moving step; the rigid map and the time series lack none.
+#[test]
+fn ed_loses_three_ranks_per_moving_step_and_the_time_series_none() {
+    let p = EstimatorParams::default();
+    for organ in [Organ::Heart, Organ::Liver] {
+        let s = Scene::simulate(&SceneParams {
+            steps: 12,
+            static_steps: 7,
+            features: 8,
+            ..SceneParams::new(organ)
+        })
+        .unwrap();
+        let moving = s.params.steps - s.params.static_steps;
+        let ed = information_rank(Method::Ed, &s, &p).unwrap();
+        assert_eq!(ed.deficiency, 3 * moving, "{organ:?}: {ed:?}");
+        assert!(
+            ed.largest_dropped < 1e-14 && ed.smallest_kept > 1e-10,
+            "{ed:?}"
+        );
+        for m in [Method::Static, Method::TimeSeries] {
+            let r = information_rank(m, &s, &p).unwrap();
+            assert_eq!(r.deficiency, 0, "{organ:?}: {r:?}");
+            assert!(r.smallest_kept > 1e-10, "{r:?}");
+        }
+    }
+}
+
+/// Observations to 0.01 mm and a noisy odometry: the time series places the scope from what it
+/// sees, ED cannot (the pose stays where the odometry puts it), and the rigid map is pulled by
+/// the liver's breathing.
+#[test]
+fn exact_observations_fix_the_pose_only_with_the_time_series() {
+    let sp = SceneParams {
+        obs_sigma_mm: 0.01,
+        odo_sigma_mm: 0.5,
+        odo_sigma_deg: 1.0,
+        ..SceneParams::new(Organ::Liver)
+    };
+    let s = Scene::simulate(&sp).unwrap();
+    let p = EstimatorParams::default();
+    let e = |m| errors(&s, &estimate(m, &s, &p).unwrap());
+    let (odo, stat, ed, ts) = (
+        e(Method::Odometry),
+        e(Method::Static),
+        e(Method::Ed),
+        e(Method::TimeSeries),
+    );
+    assert!(ts.position_rmse_mm < 0.1, "{ts:?}");
+    assert!(ts.heading_rmse_deg < 0.1, "{ts:?}");
+    assert!(ts.feature_rmse_mm < 0.1, "{ts:?}");
+    assert!(odo.position_rmse_mm > 1.0, "{odo:?}");
+    assert!(
+        ed.position_rmse_mm > 0.5 * odo.position_rmse_mm,
+        "{ed:?} against {odo:?}"
+    );
+    assert!(stat.position_rmse_mm > 2.0, "{stat:?}");
+}
+
+/// The Monte Carlo study on the heart and the liver (3 runs): the time series ahead of the rigid
+/// map and of ED on position and features; ED no better than dead reckoning on position.
+#[test]
+fn monte_carlo_ranks_the_time_series_first_where_the_scene_breathes_or_beats() {
+    let p = EstimatorParams::default();
+    for organ in [Organ::Heart, Organ::Liver] {
+        let r = study_organ(&SceneParams::new(organ), &p, 3, 12).unwrap();
+        let get = |m: Method| r.methods.iter().find(|x| x.method == m).unwrap().clone();
+        let (odo, stat, ed, ts) = (
+            get(Method::Odometry),
+            get(Method::Static),
+            get(Method::Ed),
+            get(Method::TimeSeries),
+        );
+        assert!(
+            ts.position_rmse_mm.mean < 0.8 * stat.position_rmse_mm.mean,
+            "{organ:?}: {ts:?} against {stat:?}"
+        );
+        assert!(
+            ts.position_rmse_mm.mean < 0.2 * ed.position_rmse_mm.mean,
+            "{organ:?}: {ts:?} against {ed:?}"
+        );
+        assert!(
+            ts.feature_rmse_mm.mean < 0.2 * stat.feature_rmse_mm.mean,
+            "{organ:?}"
+        );
+        assert!(
+            ed.position_rmse_mm.mean > 0.7 * odo.position_rmse_mm.mean,
+            "{organ:?}: {ed:?} against {odo:?}"
+        );
+        assert_eq!(r.rank.len(), 3);
+    }
+}
+
+#[test]
+fn bad_parameters_are_named() {
+    let base = SceneParams::new(Organ::Heart);
+    let cases = [
+        (
+            SceneParams {
+                features: 3,
+                ..base.clone()
+            },
+            "`features` is 3",
+        ),
+        (
+            SceneParams {
+                steps: 24,
+                ..base.clone()
+            },
+            "`steps` (24) must exceed `static_steps` (24)",
+        ),
+        (
+            SceneParams {
+                obs_sigma_mm: f64::NAN,
+                ..base.clone()
+            },
+            "`obs_sigma_mm` is NaN",
+        ),
+    ];
+    for (sp, want) in cases {
+        let err = Scene::simulate(&sp).unwrap_err();
+        assert!(err.contains(want), "{err}");
+    }
+    let s = Scene::simulate(&base).unwrap();
+    let err = fit_recurrence(&s, 24, 0.0).unwrap_err();
+    assert!(err.contains("order 24 needs more still steps"), "{err}");
+    let p = EstimatorParams {
+        ed_nodes: 40,
+        ..Default::default()
+    };
+    let err = estimate(Method::Ed, &s, &p).unwrap_err();
+    assert!(err.contains("`ed_nodes` is 40"), "{err}");
+    let err = study_organ(&base, &EstimatorParams::default(), 0, 12).unwrap_err();
+    assert!(err.contains("`runs` is 0"), "{err}");
+    let err = Organ::parse("spleen").unwrap_err();
+    assert!(err.contains("unknown organ `spleen`"), "{err}");
+}
