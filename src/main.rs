@@ -125,7 +125,7 @@ enum Command {
         which: BenchCommand,
     },
     /// The thesis's observability study (chapter 6): a scope moving inside a deforming planar
-    /// organ; odometry, static, ED-based and time-series-prior SLAM by Monte Carlo (RMSE of
+    /// organ; odometry, static, ED-based, FEM-based and time-series-prior SLAM by Monte Carlo (RMSE of
     /// position and heading), and the rank of each one's Fisher information without odometry.
     Observability {
         /// Organs, comma-separated: heart, stomach, liver, lung.

@@ -614,10 +614,13 @@ fn observability_study_prints_the_table_and_writes_json() {
         serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     let organ = &v["organs"][0];
     assert_eq!(organ["organ"], "liver");
-    assert_eq!(organ["methods"].as_array().unwrap().len(), 4);
+    assert_eq!(organ["methods"].as_array().unwrap().len(), 5);
     assert_eq!(organ["rank"][1]["method"], "ed");
     assert_eq!(organ["rank"][1]["deficiency"], 24);
-    assert_eq!(organ["rank"][2]["deficiency"], 0);
+    assert_eq!(organ["rank"][2]["method"], "fem");
+    assert_eq!(organ["rank"][2]["deficiency"], 24);
+    assert_eq!(organ["rank"][3]["method"], "time_series");
+    assert_eq!(organ["rank"][3]["deficiency"], 0);
     let bad = misslam()
         .args(["observability", "--organs", "heart,spleen"])
         .output()

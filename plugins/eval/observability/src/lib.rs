@@ -16,11 +16,12 @@
 //! - [`Method::Static`]: a rigid scene (one position per feature);
 //! - [`Method::Ed`]: an ED graph per step on the first view's features (affine nodes, Sumner
 //!   weights, E_rot and E_reg), nothing tying the steps together;
+//! - [`Method::Fem`]: a position per feature per step held together by a finite-element model
+//!   of the wall (bar elements, rest lengths from the first view), nothing tying the steps;
 //! - [`Method::TimeSeries`]: a position per feature per step with E_f.
 //!
 //! [`run_study`] runs them by Monte Carlo (RMSE of position and heading against the truth) and
 //! tests the rank of each one's Fisher information without odometry ([`information_rank`]).
-//! The thesis also compares an FEM-based SLAM; that estimator is not here.
 
 pub mod lsq;
 pub mod scene;
@@ -38,16 +39,21 @@ pub enum Method {
     Static,
     /// SLAM with an ED graph per step, no temporal prior.
     Ed,
+    /// SLAM with a finite-element model of the wall per step: linear bar (truss) elements
+    /// between neighbouring points and between every other point (bending), rest lengths from
+    /// the first view, no temporal prior.
+    Fem,
     /// SLAM with the time-series prior E_f and the still period E_ini.
     TimeSeries,
 }
 
 impl Method {
     /// Every estimator, in the table's order.
-    pub const ALL: [Method; 4] = [
+    pub const ALL: [Method; 5] = [
         Method::Odometry,
         Method::Static,
         Method::Ed,
+        Method::Fem,
         Method::TimeSeries,
     ];
 
@@ -57,6 +63,7 @@ impl Method {
             Method::Odometry => "odometry",
             Method::Static => "static",
             Method::Ed => "ed",
+            Method::Fem => "fem",
             Method::TimeSeries => "time_series",
         }
     }
@@ -75,6 +82,9 @@ pub struct EstimatorParams {
     pub w_rot: f64,
     /// ED: weight of E_reg (between neighbouring nodes around the wall).
     pub w_reg: f64,
+    /// FEM: stiffness of the bar elements (weight of each element's squared strain times its
+    /// rest length, mm^-1).
+    pub fem_stiffness: f64,
     /// Order t of the time series; 0: the organ's 2H + 1 for its H frequencies.
     pub order: usize,
     /// Standard deviation of E_f, mm.
@@ -99,6 +109,7 @@ impl Default for EstimatorParams {
             ed_k: 3,
             w_rot: 1.0,
             w_reg: 10.0,
+            fem_stiffness: 100.0,
             order: 0,
             ts_sigma_mm: 0.01,
             estimate_coefficients: true,
@@ -136,6 +147,7 @@ impl EstimatorParams {
         for (name, v) in [
             ("w_rot", self.w_rot),
             ("w_reg", self.w_reg),
+            ("fem_stiffness", self.fem_stiffness),
             ("ridge", self.ridge),
             ("tol", self.tol),
         ] {
@@ -389,6 +401,62 @@ pub fn build(
                         features: Some(features),
                         info: Default::default(),
                     }
+                }),
+            ))
+        }
+        Method::Fem => {
+            let fv = move |n: usize, j: usize| np + 2 * (n * m + j);
+            let ks = p.fem_stiffness.sqrt();
+            for (n, pose) in dr.iter().enumerate() {
+                for j in 0..m {
+                    let z = s.observations[n][j];
+                    let f = pose
+                        .compose(&Pose2 {
+                            x: z.x,
+                            y: z.y,
+                            th: 0.0,
+                        })
+                        .p();
+                    x.extend([f.x, f.y]);
+                    let v = fv(n, j);
+                    prob.add(
+                        vec![3 * n, 3 * n + 1, 3 * n + 2, v, v + 1],
+                        2,
+                        move |v, out| {
+                            obs_residual(&pose_of(v), &Vector2::new(v[3], v[4]), &z, so, out);
+                        },
+                    );
+                }
+                // Strain energy of a bar of rest length L: (k / 2) L ((l - L) / L)^2.
+                for j in 0..m {
+                    for step in [1, 2] {
+                        let k = (j + step) % m;
+                        let rest = (first[k] - first[j]).norm().max(1e-9);
+                        let scale = ks / rest.sqrt();
+                        let (a, b) = (fv(n, j), fv(n, k));
+                        prob.add(vec![a, a + 1, b, b + 1], 1, move |v, out| {
+                            let l = Vector2::new(v[2] - v[0], v[3] - v[1]).norm();
+                            out[0] = scale * (l - rest);
+                        });
+                    }
+                }
+            }
+            prob.n = x.len();
+            Ok((
+                prob,
+                x,
+                Box::new(move |x: &[f64]| Estimate {
+                    poses: (0..nsteps).map(|n| pose_of(&x[3 * n..])).collect(),
+                    features: Some(
+                        (0..nsteps)
+                            .map(|n| {
+                                (0..m)
+                                    .map(|j| Vector2::new(x[fv(n, j)], x[fv(n, j) + 1]))
+                                    .collect()
+                            })
+                            .collect(),
+                    ),
+                    info: Default::default(),
                 }),
             ))
         }
@@ -780,7 +848,7 @@ pub fn study_organ(
         static_steps: rank_steps / 2,
         ..scene.clone()
     })?;
-    let rank = [Method::Static, Method::Ed, Method::TimeSeries]
+    let rank = [Method::Static, Method::Ed, Method::Fem, Method::TimeSeries]
         .iter()
         .map(|m| information_rank(*m, &rank_scene, p))
         .collect::<Result<Vec<_>, _>>()?;

@@ -53,10 +53,11 @@ fn noise_free_still_period_gives_the_true_coefficients() {
     }
 }
 
-/// Without odometry a rigid motion of all the nodes, undone by the pose, is invisible at every
-/// moving step: ED lacks 3 ranks per moving step; the rigid map and the time series lack none.
+/// Without odometry a rigid motion of all the nodes (or of the whole FEM wall), undone by the
+/// pose, is invisible at every moving step: ED and FEM lack 3 ranks per moving step; the rigid
+/// map and the time series lack none.
 #[test]
-fn ed_loses_three_ranks_per_moving_step_and_the_time_series_none() {
+fn ed_and_fem_lose_three_ranks_per_moving_step_and_the_time_series_none() {
     let p = EstimatorParams::default();
     for organ in [Organ::Heart, Organ::Liver] {
         let s = Scene::simulate(&SceneParams {
@@ -67,12 +68,14 @@ fn ed_loses_three_ranks_per_moving_step_and_the_time_series_none() {
         })
         .unwrap();
         let moving = s.params.steps - s.params.static_steps;
-        let ed = information_rank(Method::Ed, &s, &p).unwrap();
-        assert_eq!(ed.deficiency, 3 * moving, "{organ:?}: {ed:?}");
-        assert!(
-            ed.largest_dropped < 1e-14 && ed.smallest_kept > 1e-10,
-            "{ed:?}"
-        );
+        for m in [Method::Ed, Method::Fem] {
+            let r = information_rank(m, &s, &p).unwrap();
+            assert_eq!(r.deficiency, 3 * moving, "{organ:?}: {r:?}");
+            assert!(
+                r.largest_dropped < 1e-14 && r.smallest_kept > 1e-10,
+                "{r:?}"
+            );
+        }
         for m in [Method::Static, Method::TimeSeries] {
             let r = information_rank(m, &s, &p).unwrap();
             assert_eq!(r.deficiency, 0, "{organ:?}: {r:?}");
@@ -95,10 +98,11 @@ fn exact_observations_fix_the_pose_only_with_the_time_series() {
     let s = Scene::simulate(&sp).unwrap();
     let p = EstimatorParams::default();
     let e = |m| errors(&s, &estimate(m, &s, &p).unwrap());
-    let (odo, stat, ed, ts) = (
+    let (odo, stat, ed, fem, ts) = (
         e(Method::Odometry),
         e(Method::Static),
         e(Method::Ed),
+        e(Method::Fem),
         e(Method::TimeSeries),
     );
     assert!(ts.position_rmse_mm < 0.1, "{ts:?}");
@@ -109,21 +113,27 @@ fn exact_observations_fix_the_pose_only_with_the_time_series() {
         ed.position_rmse_mm > 0.5 * odo.position_rmse_mm,
         "{ed:?} against {odo:?}"
     );
+    assert!(
+        fem.position_rmse_mm > 0.5 * odo.position_rmse_mm,
+        "{fem:?} against {odo:?}"
+    );
     assert!(stat.position_rmse_mm > 2.0, "{stat:?}");
 }
 
 /// The Monte Carlo study on the heart and the liver (3 runs): the time series ahead of the rigid
-/// map and of ED on position and features; ED no better than dead reckoning on position.
+/// map, ED and FEM on position and of the rigid map on features; ED and FEM not much better
+/// than dead reckoning on position.
 #[test]
 fn monte_carlo_ranks_the_time_series_first_where_the_scene_breathes_or_beats() {
     let p = EstimatorParams::default();
     for organ in [Organ::Heart, Organ::Liver] {
         let r = study_organ(&SceneParams::new(organ), &p, 3, 12).unwrap();
         let get = |m: Method| r.methods.iter().find(|x| x.method == m).unwrap().clone();
-        let (odo, stat, ed, ts) = (
+        let (odo, stat, ed, fem, ts) = (
             get(Method::Odometry),
             get(Method::Static),
             get(Method::Ed),
+            get(Method::Fem),
             get(Method::TimeSeries),
         );
         assert!(
@@ -139,10 +149,16 @@ fn monte_carlo_ranks_the_time_series_first_where_the_scene_breathes_or_beats() {
             "{organ:?}"
         );
         assert!(
-            ed.position_rmse_mm.mean > 0.7 * odo.position_rmse_mm.mean,
-            "{organ:?}: {ed:?} against {odo:?}"
+            ts.position_rmse_mm.mean < 0.2 * fem.position_rmse_mm.mean,
+            "{organ:?}: {ts:?} against {fem:?}"
         );
-        assert_eq!(r.rank.len(), 3);
+        for m in [&ed, &fem] {
+            assert!(
+                m.position_rmse_mm.mean > 0.5 * odo.position_rmse_mm.mean,
+                "{organ:?}: {m:?} against {odo:?}"
+            );
+        }
+        assert_eq!(r.rank.len(), 4);
     }
 }
 
