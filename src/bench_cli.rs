@@ -25,6 +25,9 @@ pub(crate) enum BenchCommand {
         /// Sub-pixel refinement (off in libelas's presets).
         #[arg(long)]
         subpixel: bool,
+        /// The dense matching on the GPU (`device = "gpu"`), compared with the CPU's output.
+        #[arg(long)]
+        gpu: bool,
         /// Runs.
         #[arg(long, default_value_t = 5)]
         repeat: usize,
@@ -366,6 +369,7 @@ pub(crate) fn run(which: BenchCommand) -> anyhow::Result<()> {
             preset,
             disp_max,
             subpixel,
+            gpu,
             repeat,
             out,
         } => {
@@ -376,12 +380,19 @@ pub(crate) fn run(which: BenchCommand) -> anyhow::Result<()> {
             };
             p.disp_max = disp_max;
             p.subpixel = subpixel;
-            let r = misslam::bench::elas(&left, &right, &p, repeat).map_err(anyhow::Error::msg)?;
+            let r =
+                misslam::bench::elas(&left, &right, &p, repeat, gpu).map_err(anyhow::Error::msg)?;
             let s = r.steps_ms;
             out!(
                 "ELAS {preset} {}x{}, disp_max {disp_max}: {:.1} ms (median of {repeat}); descriptors {:.1}, support {:.1} ({} points), triangulation {:.1}, dense {:.1}, postprocess {:.1}",
                 r.width, r.height, r.ms, s[0], s[1], r.support_points, s[2], s[3], s[4]
             );
+            if let (Some(a), Some(g), Some((validity, diff))) = (&r.gpu, r.dense_gpu_ms, r.parity) {
+                out!(
+                    "dense matching on {a}: raster {:.2}, upload {:.2}, kernel and readback {:.2} ms; against the CPU: {validity} pixels differ in validity, max |diff| {diff:.2e} px",
+                    g[0], g[1], g[2]
+                );
+            }
             if let Some(path) = out {
                 let map = misslam::framework::FloatMap {
                     width: r.width,

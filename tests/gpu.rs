@@ -575,3 +575,81 @@ fn bench_sgm_gpu_reports_parity_and_stages() {
         "{s:?}"
     );
 }
+
+/// ELAS's dense matching on the GPU gives the CPU's disparities: the same integers (so the same
+/// bits without sub-pixel refinement, both presets), and the sub-pixel fit within 1e-5 px.
+#[test]
+fn elas_dense_matching_on_the_gpu_gives_the_cpu_disparities() {
+    use misslam_depth_elas::dense_gpu::DenseGpu;
+    use misslam_depth_elas::{elas_gpu, elas_with, ElasParams, Scratch};
+    let Some(ctx) = gpu() else { return };
+    let (w, h) = (160, 96);
+    let (left, right) = stereo_scene(w, h, 21);
+    let mut kernel = DenseGpu::new(&ctx);
+    for (name, base) in [
+        ("robotics", ElasParams::robotics()),
+        ("middlebury", ElasParams::middlebury()),
+    ] {
+        for subpixel in [false, true] {
+            let p = ElasParams {
+                disp_max: 40,
+                subpixel,
+                ..base
+            };
+            let cpu = elas_with(&left, &right, w, h, &p, &mut Scratch::default()).unwrap();
+            let mut s = Scratch::default();
+            let got = elas_gpu(&left, &right, w, h, &p, &mut s, (&ctx, &mut kernel)).unwrap();
+            assert!(got.timing.dense_gpu.is_some());
+            let valid = cpu.left.iter().filter(|d| d.is_finite()).count();
+            assert!(valid * 2 > w * h, "{name}: {valid} valid pixels");
+            let (validity, max_diff) = misslam::bench::disparity_parity(&got.left, &cpu.left);
+            println!("{name}, sub-pixel {subpixel}: {validity} pixels differ in validity, max |diff| {max_diff:.2e} px, {valid} valid");
+            assert_eq!(validity, 0, "{name}, sub-pixel {subpixel}");
+            if subpixel {
+                assert!(max_diff <= 1e-5, "{name}: {max_diff}");
+            } else {
+                let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&got.left), bits(&cpu.left), "{name}");
+            }
+        }
+    }
+}
+
+/// `depth.elas` with `device = "gpu"` in a graph (`graphs/depth_elas_phantom.toml`, sub-pixel)
+/// scores as on the CPU.
+#[test]
+fn depth_elas_on_the_gpu_scores_as_on_the_cpu() {
+    if gpu().is_none() {
+        return;
+    }
+    let mut scores = Vec::new();
+    for device in ["cpu", "gpu"] {
+        let sets: Vec<String> = [
+            "src.width=160",
+            "src.height=120",
+            "src.focal_px=175.0",
+            "graph.frames.count=1",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .chain([format!("depth.device=\"{device}\"")])
+        .collect();
+        let report = common::run_graph_file(
+            "graphs/depth_elas_phantom.toml",
+            &sets,
+            &common::tmp_dir(&format!("elas-phantom-{device}")),
+        );
+        assert!(report.error.is_none(), "{device}: {:?}", report.error);
+        let eval = &report.metrics.eval;
+        let s = (eval["depth.density_pct"], eval["depth.mae_mm"]);
+        println!("{device}: density {:.1} %, MAE {:.4} mm", s.0, s.1);
+        assert!(s.0 > 50.0, "{device}: density {} %", s.0);
+        scores.push(s);
+    }
+    // The same integers; the sub-pixel fit's division may round differently on a GPU, which
+    // moves the scores by far less than this.
+    assert!(
+        (scores[0].0 - scores[1].0).abs() <= 0.05 && (scores[0].1 - scores[1].1).abs() <= 1e-3,
+        "CPU and GPU score differently: {scores:?}"
+    );
+}

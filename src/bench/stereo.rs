@@ -18,18 +18,28 @@ pub struct ElasBench {
     pub ms: f64,
     /// Median time of each step, ms: descriptors, support, triangulation, dense, postprocess.
     pub steps_ms: [f64; 5],
+    /// The adapter when the dense matching ran on the GPU.
+    pub gpu: Option<String>,
+    /// With the GPU: medians of the dense matching's parts, ms: the host's raster of the
+    /// triangles, the uploads, and the kernel with the readback.
+    pub dense_gpu_ms: Option<[f64; 3]>,
+    /// With the GPU: pixels whose validity differs from the CPU's output on the same pair, and
+    /// the largest |GPU - CPU| over pixels valid in both, px.
+    pub parity: Option<(usize, f32)>,
     /// Left disparity of the last run (px, NaN invalid), row-major.
     #[serde(skip)]
     pub disparity: Vec<f32>,
 }
 
 /// ELAS on a pair (threads: as rayon is configured, e.g. `RAYON_NUM_THREADS=1`), with the time
-/// of each step (median of `repeat`).
+/// of each step (median of `repeat`); with `gpu` the dense matching runs on the GPU and the
+/// output is compared with the CPU's.
 pub fn elas(
     left: &Path,
     right: &Path,
     p: &misslam_depth_elas::ElasParams,
     repeat: usize,
+    gpu: bool,
 ) -> Result<ElasBench, String> {
     let (w, h, l) = gray_image(left)?;
     let (w2, h2, r) = gray_image(right)?;
@@ -41,11 +51,33 @@ pub fn elas(
         ));
     }
     let mut steps: Vec<[f64; 5]> = Vec::new();
+    let mut parts: Vec<[f64; 3]> = Vec::new();
     let mut last = None;
     let mut scratch = misslam_depth_elas::Scratch::default();
+    let ctx = if gpu {
+        Some(
+            misslam_framework::gpu::GpuProvider::new()
+                .get()
+                .map_err(|e| e.to_string())?,
+        )
+    } else {
+        None
+    };
+    let mut kernel = ctx
+        .as_ref()
+        .map(|c| misslam_depth_elas::dense_gpu::DenseGpu::new(c));
+    let (wu, hu) = (w as usize, h as usize);
     let ms = median_ms(repeat, || {
-        let o = misslam_depth_elas::elas_with(&l, &r, w as usize, h as usize, p, &mut scratch)?;
+        let o = match (&ctx, &mut kernel) {
+            (Some(c), Some(k)) => {
+                misslam_depth_elas::elas_gpu(&l, &r, wu, hu, p, &mut scratch, (c, k))?
+            }
+            _ => misslam_depth_elas::elas_with(&l, &r, wu, hu, p, &mut scratch)?,
+        };
         let t = o.timing;
+        if let Some(g) = t.dense_gpu {
+            parts.push([g.raster_ms, g.upload_ms, g.kernel_readback_ms]);
+        }
         steps.push([
             t.descriptors,
             t.support,
@@ -58,12 +90,25 @@ pub fn elas(
     })?;
     let o = last.ok_or("no run")?;
     let steps_ms = std::array::from_fn(|k| median(steps.iter().map(|s| s[k]).collect()));
+    let parity = if gpu {
+        let cpu = misslam_depth_elas::elas_with(&l, &r, wu, hu, p, &mut Default::default())?;
+        Some(disparity_parity(&o.left, &cpu.left))
+    } else {
+        None
+    };
     Ok(ElasBench {
         width: w,
         height: h,
         support_points: o.support.len(),
         ms,
         steps_ms,
+        gpu: ctx.as_ref().map(|c| {
+            let i = &c.adapter_info;
+            format!("{} ({:?}, {:?})", i.name, i.backend, i.device_type)
+        }),
+        dense_gpu_ms: (!parts.is_empty())
+            .then(|| std::array::from_fn(|k| median(parts.iter().map(|s| s[k]).collect()))),
+        parity,
         disparity: o.left,
     })
 }

@@ -10,6 +10,22 @@ use crate::descriptor::{sad, texture, Desc};
 use crate::support::SupportPoint;
 use crate::ElasParams;
 
+/// `x.round() as i32` (half away from zero, saturating, NaN to 0) without the library call
+/// `round` is on the x86-64 baseline (no SSE4.1): the truncation is one instruction and the
+/// fraction x - trunc(x) is exact in f32.
+#[inline(always)]
+pub fn round_i32(x: f32) -> i32 {
+    let t = x as i32;
+    let f = x - t as f32;
+    if f >= 0.5 {
+        t.saturating_add(1)
+    } else if f <= -0.5 {
+        t.saturating_sub(1)
+    } else {
+        t
+    }
+}
+
 /// A disparity plane d = a u + b v + c.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Plane {
@@ -144,6 +160,11 @@ impl DisparityGrid {
         }
     }
 
+    /// The packed grid: `gw * gh + 1` offsets into the candidates, and the candidates.
+    pub fn raw(&self) -> (&[u32], &[u16]) {
+        (&self.offsets, &self.cands)
+    }
+
     /// Candidates of the cell holding pixel (u, v).
     #[inline(always)]
     pub fn at(&self, u: usize, v: usize) -> &[u16] {
@@ -214,7 +235,7 @@ impl Matcher<'_> {
         let other = &self.other[row..row + self.w];
         let (dmin, dmax) = (self.p.disp_min as i32, self.p.disp_max as i32);
         let (table, radius) = self.prior;
-        let dp = plane.map_or(i32::MIN / 2, |pl| pl.at(u as f32, v as f32).round() as i32);
+        let dp = plane.map_or(i32::MIN / 2, |pl| round_i32(pl.at(u as f32, v as f32)));
         let (lo, hi) = if plane.is_some() {
             (
                 (dp - radius as i32).max(dmin),
@@ -340,6 +361,41 @@ pub fn raster(c: [(f32, f32); 3], w: usize, h: usize, mut f: impl FnMut(usize, u
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
+
+    #[test]
+    fn round_i32_is_std_round_cast() {
+        let mut s = 0x2545_f491u32;
+        let mut vals = vec![
+            0.5f32,
+            -0.5,
+            1.5,
+            -1.5,
+            2.5,
+            0.49999997,
+            -0.49999997,
+            8388607.5,
+            -8388607.5,
+            1e10,
+            -1e10,
+            f32::NAN,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            2147483520.0,
+            -2147483648.0,
+            0.0,
+            -0.0,
+        ];
+        for _ in 0..100_000 {
+            s ^= s << 13;
+            s ^= s >> 17;
+            s ^= s << 5;
+            vals.push(f32::from_bits(s));
+            vals.push((s % 100_000) as f32 / 64.0 - 700.0);
+        }
+        for x in vals {
+            assert_eq!(round_i32(x), x.round() as i32, "{x:e}");
+        }
+    }
 
     #[test]
     fn plane_through_three_points_is_exact() {

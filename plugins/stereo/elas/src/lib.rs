@@ -1,5 +1,6 @@
 //! `depth.elas`: Efficient LArge-scale Stereo (Geiger, Roser and Urtasun, ACCV 2010) on
-//! rectified pairs, on the CPU.
+//! rectified pairs, on the CPU, with the dense matching on the GPU on request
+//! ([`dense_gpu`], `device = "gpu"`).
 //!
 //! The pipeline, one module per step:
 //! 1. [`descriptor`]: 16-byte Sobel descriptors, SAD cost;
@@ -18,6 +19,7 @@
 
 pub mod delaunay;
 pub mod dense;
+pub mod dense_gpu;
 pub mod descriptor;
 pub mod filters;
 pub mod support;
@@ -87,6 +89,9 @@ macro_rules! elas_params {
             /// Starting values: `robotics` (unreliable pixels stay invalid) or `middlebury`
             /// (everything filled).
             pub preset: Preset,
+            /// Where the dense matching (step 5) runs: "cpu", "gpu" (WGSL, the CPU's integers;
+            /// an error without an adapter) or "auto"; every other step runs on the CPU.
+            pub device: misslam_framework::gpu::Device,
             $(
                 $(#[doc = $doc])*
                 #[doc = concat!(" Preset values: robotics ", stringify!($rob), ", middlebury ", stringify!($mid), ".")]
@@ -250,6 +255,8 @@ pub struct Timing {
     pub dense: f64,
     /// Left-right check, segments, gaps, mean or median.
     pub postprocess: f64,
+    /// The dense matching's parts when it ran on the GPU.
+    pub dense_gpu: Option<dense_gpu::DenseGpuTiming>,
 }
 
 /// Buffers reused across frames (a fresh allocation of a few MB per frame costs more in page
@@ -294,6 +301,38 @@ pub fn elas_with(
     h: usize,
     p: &ElasParams,
     s: &mut Scratch,
+) -> Result<ElasOutput, String> {
+    elas_on(left, right, w, h, p, s, None)
+}
+
+/// [`elas_with`] with the dense matching on the GPU ([`dense_gpu::DenseGpu`]): the same output
+/// (the sub-pixel fit within a few 1e-7 px).
+pub fn elas_gpu(
+    left: &[u8],
+    right: &[u8],
+    w: usize,
+    h: usize,
+    p: &ElasParams,
+    s: &mut Scratch,
+    gpu: (
+        &misslam_framework::gpu::GpuContext,
+        &mut dense_gpu::DenseGpu,
+    ),
+) -> Result<ElasOutput, String> {
+    elas_on(left, right, w, h, p, s, Some(gpu))
+}
+
+fn elas_on(
+    left: &[u8],
+    right: &[u8],
+    w: usize,
+    h: usize,
+    p: &ElasParams,
+    s: &mut Scratch,
+    gpu: Option<(
+        &misslam_framework::gpu::GpuContext,
+        &mut dense_gpu::DenseGpu,
+    )>,
 ) -> Result<ElasOutput, String> {
     p.validate()?;
     if w == 0 || h == 0 {
@@ -348,34 +387,55 @@ pub fn elas_with(
     let mut disp_l = vec![f32::NAN; w * h];
     disp_r.clear();
     disp_r.resize(w * h, f32::NAN);
-    rayon::join(
-        || {
-            let grid = dense::DisparityGrid::new(&support, w, h, false, p);
-            let m = dense::Matcher {
-                own: dl,
-                other: dr,
-                w,
-                h,
-                right: false,
-                prior: (&table, radius),
-                p,
-            };
-            m.run(&support, &tri_l, &planes_l, &grid, &mut disp_l);
-        },
-        || {
-            let grid = dense::DisparityGrid::new(&support, w, h, true, p);
-            let m = dense::Matcher {
-                own: dr,
-                other: dl,
-                w,
-                h,
-                right: true,
-                prior: (&table, radius),
-                p,
-            };
-            m.run(&support, &tri_r, &planes_r, &grid, disp_r);
-        },
-    );
+    if let Some((ctx, kernel)) = gpu {
+        let (grid_l, grid_r) = rayon::join(
+            || dense::DisparityGrid::new(&support, w, h, false, p),
+            || dense::DisparityGrid::new(&support, w, h, true, p),
+        );
+        let image = |tris, planes, grid| dense_gpu::Image { tris, planes, grid };
+        timing.dense_gpu = Some(kernel.run(
+            ctx,
+            (dl, dr),
+            (w, h),
+            p,
+            &support,
+            (
+                image(&tri_l, &planes_l, &grid_l),
+                image(&tri_r, &planes_r, &grid_r),
+            ),
+            (&table, radius),
+            (&mut disp_l, disp_r),
+        )?);
+    } else {
+        rayon::join(
+            || {
+                let grid = dense::DisparityGrid::new(&support, w, h, false, p);
+                let m = dense::Matcher {
+                    own: dl,
+                    other: dr,
+                    w,
+                    h,
+                    right: false,
+                    prior: (&table, radius),
+                    p,
+                };
+                m.run(&support, &tri_l, &planes_l, &grid, &mut disp_l);
+            },
+            || {
+                let grid = dense::DisparityGrid::new(&support, w, h, true, p);
+                let m = dense::Matcher {
+                    own: dr,
+                    other: dl,
+                    w,
+                    h,
+                    right: true,
+                    prior: (&table, radius),
+                    p,
+                };
+                m.run(&support, &tri_r, &planes_r, &grid, disp_r);
+            },
+        );
+    }
     lap(&mut timing.dense);
     let both = !p.postprocess_only_left;
     filters::lr_check(&mut disp_l, disp_r, w, p.lr_threshold as f32, both, tmp_l);
@@ -419,6 +479,11 @@ pub fn elas_with(
 /// The node.
 pub struct ElasNode {
     params: ElasParams,
+    /// The dense matching's kernel with `device` = "gpu" (or "auto" with an adapter).
+    gpu: Option<(
+        std::sync::Arc<misslam_framework::gpu::GpuContext>,
+        dense_gpu::DenseGpu,
+    )>,
     scratch: Scratch,
     gray_l: Vec<u8>,
     gray_r: Vec<u8>,
@@ -436,14 +501,25 @@ impl ElasNode {
         }
         pair.left.gray_into(&mut self.gray_l);
         pair.right.gray_into(&mut self.gray_r);
-        let mut out = elas_with(
-            &self.gray_l,
-            &self.gray_r,
-            w,
-            h,
-            &self.params,
-            &mut self.scratch,
-        )?;
+        let mut out = match &mut self.gpu {
+            Some((ctx, kernel)) => elas_gpu(
+                &self.gray_l,
+                &self.gray_r,
+                w,
+                h,
+                &self.params,
+                &mut self.scratch,
+                (ctx, kernel),
+            )?,
+            None => elas_with(
+                &self.gray_l,
+                &self.gray_r,
+                w,
+                h,
+                &self.params,
+                &mut self.scratch,
+            )?,
+        };
         let mut data = std::mem::take(&mut out.left);
         if let Some(m) = &pair.left_mask {
             for (d, &k) in data.iter_mut().zip(&m.data) {
@@ -533,11 +609,21 @@ impl Node for ElasNode {
 }
 
 /// Builds the node.
-pub fn build(params: Params, _: &BuildContext) -> Result<ElasNode, BuildError> {
+pub fn build(params: Params, ctx: &BuildContext) -> Result<ElasNode, BuildError> {
+    let device = params.device;
     let params = params.resolve();
     params.validate().map_err(|m| BuildError::param("", m))?;
+    let gpu = ctx
+        .gpu
+        .for_device(device, ctx.node_id)
+        .map_err(|e| BuildError::param("device", e.to_string()))?
+        .map(|c| {
+            let k = dense_gpu::DenseGpu::new(&c);
+            (c, k)
+        });
     Ok(ElasNode {
         params,
+        gpu,
         scratch: Scratch::default(),
         gray_l: Vec::new(),
         gray_r: Vec::new(),
