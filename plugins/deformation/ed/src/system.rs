@@ -341,6 +341,15 @@ impl BlockSystem {
             None
         };
         if let Some(s) = &symbolic {
+            tracing::debug!(
+                "ED symbolic: n {n}, nnz(A upper) {}, nnz(L) {}, supernodal {}",
+                row_idx.len(),
+                s.len_val(),
+                matches!(
+                    s.raw(),
+                    faer::sparse::linalg::cholesky::SymbolicCholeskyRaw::Supernodal(_)
+                )
+            );
             self.l_values = vec![0.0; s.len_val()];
             let req = s
                 .factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default())

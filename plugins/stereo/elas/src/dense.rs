@@ -327,7 +327,19 @@ impl Matcher<'_> {
 
 /// Visits the pixels of a triangle column by column, half-open in u and v (libelas's scan):
 /// triangles sharing an edge visit each pixel once.
-pub fn raster(c: [(f32, f32); 3], w: usize, h: usize, mut f: impl FnMut(usize, usize)) {
+pub fn raster(c: [(f32, f32); 3], w: usize, h: usize, f: impl FnMut(usize, usize)) {
+    raster_columns(c, w, h, 0..w, f);
+}
+
+/// [`raster`] restricted to the columns `cols`: the same pixels of those columns, so that
+/// column ranges can be rasterised apart.
+pub fn raster_columns(
+    c: [(f32, f32); 3],
+    w: usize,
+    h: usize,
+    cols: std::ops::Range<usize>,
+    mut f: impl FnMut(usize, usize),
+) {
     let mut c = c;
     c.sort_by(|a, b| a.0.total_cmp(&b.0));
     let [a, b, cc] = c;
@@ -344,8 +356,8 @@ pub fn raster(c: [(f32, f32); 3], w: usize, h: usize, mut f: impl FnMut(usize, u
         if lo as i32 == hi as i32 {
             continue;
         }
-        let u0 = (lo as i32).max(0);
-        let u1 = (hi as i32).min(w as i32);
+        let u0 = (lo as i32).max(0).max(cols.start as i32);
+        let u1 = (hi as i32).min(w as i32).min(cols.end as i32);
         for u in u0..u1 {
             let v1 = (ac.0 * u as f32 + ac.1) as i32;
             let v2 = (e.0 * u as f32 + e.1) as i32;
@@ -432,6 +444,19 @@ mod tests {
                 assert_eq!(count[v * 20 + u], inside as u8, "pixel ({u}, {v})");
             }
         }
+    }
+
+    #[test]
+    fn column_ranges_rasterise_the_same_pixels() {
+        let tri = [(3.2f32, 1.5f32), (37.9, 12.1), (11.4, 29.8)];
+        let mut whole = Vec::new();
+        raster(tri, 40, 32, |u, v| whole.push((u, v)));
+        let mut parts = Vec::new();
+        for cols in [0..7, 7..8, 8..20, 20..40] {
+            raster_columns(tri, 40, 32, cols, |u, v| parts.push((u, v)));
+        }
+        assert!(whole.len() > 200);
+        assert_eq!(whole, parts);
     }
 
     #[test]

@@ -6,7 +6,7 @@
 
 use misslam_framework::gpu::GpuContext;
 
-use crate::dense::{raster, round_i32, DisparityGrid, TrianglePlanes};
+use crate::dense::{raster_columns, round_i32, DisparityGrid, TrianglePlanes};
 use crate::descriptor::Desc;
 use crate::support::SupportPoint;
 use crate::ElasParams;
@@ -15,6 +15,9 @@ use crate::ElasParams;
 pub const DENSE_WGSL: &str = include_str!("../../../../shaders/stereo/elas_dense.wgsl");
 
 const OUTSIDE: u32 = u32::MAX;
+
+/// A triangle's corners (u, v) in the raster's image.
+type Corners = [(f32, f32); 3];
 
 /// What the host hands the kernel for one image: its triangles with their planes, its grid.
 pub struct Image<'a> {
@@ -175,32 +178,62 @@ impl DenseGpu {
         // images side by side, each column-major.
         self.plan.clear();
         self.plan.resize(2 * n, OUTSIDE);
-        let rasterise = |plan: &mut [u32], im: &Image, right: bool| {
-            for (t, tp) in im.tris.iter().zip(im.planes) {
-                let (plane, valid) = tp.for_image(right);
-                let corners = t.map(|i| {
-                    let s = support[i as usize];
-                    let u = if right { s.u - s.d } else { s.u };
-                    (u as f32, s.v as f32)
-                });
-                // Column-major, in the raster's order (the raster walks columns).
-                raster(corners, w, h, |u, v| {
-                    plan[u * h + v] = match plane {
-                        None => 0,
-                        Some(pl) => {
-                            let dp = round_i32(pl.at(u as f32, v as f32))
-                                .clamp(dmin - r - 1, dmax + r + 1);
-                            (dp + 32768) as u32 | 1 << 16 | u32::from(valid) << 17
-                        }
-                    };
-                });
+        // Column-major, in the raster's order (the raster walks columns), so that blocks of
+        // columns are rasterised on rayon's threads into disjoint slices, each visiting the
+        // triangles in order.
+        const BLOCK: usize = 32;
+        let code = |plane: Option<crate::dense::Plane>, valid: bool, u: usize, v: usize| match plane
+        {
+            None => 0,
+            Some(pl) => {
+                let dp = round_i32(pl.at(u as f32, v as f32)).clamp(dmin - r - 1, dmax + r + 1);
+                (dp + 32768) as u32 | 1 << 16 | u32::from(valid) << 17
             }
         };
+        let corners = |im: &Image, right: bool| -> Vec<(Corners, (f32, f32))> {
+            im.tris
+                .iter()
+                .map(|t| {
+                    let c = t.map(|i| {
+                        let s = support[i as usize];
+                        let u = if right { s.u - s.d } else { s.u };
+                        (u as f32, s.v as f32)
+                    });
+                    let lo = c.iter().map(|p| p.0).fold(f32::INFINITY, f32::min);
+                    let hi = c.iter().map(|p| p.0).fold(f32::NEG_INFINITY, f32::max);
+                    (c, (lo, hi))
+                })
+                .collect()
+        };
+        let tris = [corners(&left, false), corners(&right, true)];
+        let ims = [&left, &right];
+        use rayon::prelude::*;
         let (plan_l, plan_r) = self.plan.split_at_mut(n);
-        rayon::join(
-            || rasterise(plan_l, &left, false),
-            || rasterise(plan_r, &right, true),
-        );
+        let chunk = BLOCK * h;
+        plan_l
+            .par_chunks_mut(chunk)
+            .enumerate()
+            .map(|(b, c)| (0, b, c))
+            .chain(
+                plan_r
+                    .par_chunks_mut(chunk)
+                    .enumerate()
+                    .map(|(b, c)| (1, b, c)),
+            )
+            .for_each(|(img, b, chunk)| {
+                let cols = b * BLOCK..((b + 1) * BLOCK).min(w);
+                let u0 = cols.start;
+                for ((c, (lo, hi)), tp) in tris[img].iter().zip(ims[img].planes) {
+                    // The raster's columns lie in [trunc(lo), trunc(hi)).
+                    if (*hi as i64) <= u0 as i64 || (*lo as i64) >= cols.end as i64 {
+                        continue;
+                    }
+                    let (plane, valid) = tp.for_image(img == 1);
+                    raster_columns(*c, w, h, cols.clone(), |u, v| {
+                        chunk[(u - u0) * h + v] = code(plane, valid, u, v);
+                    });
+                }
+            });
         let raster_ms = t0.elapsed().as_secs_f64() * 1e3;
         let t1 = std::time::Instant::now();
         let cells = grids[0].gw * grids[0].gh;
