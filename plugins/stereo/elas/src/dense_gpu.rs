@@ -300,18 +300,21 @@ impl DenseGpu {
             .map_err(|e| e.to_string())?;
         rx.recv()
             .map_err(|e| e.to_string())?
-            .map_err(|e| e.to_string())?;
-        {
-            let view = b
-                .staging
-                .slice(..bytes)
-                .get_mapped_range()
-                .map_err(|e| e.to_string())?;
-            let maps: &[f32] = bytemuck::try_cast_slice(&view).map_err(|e| e.to_string())?;
-            out_l.copy_from_slice(&maps[..n]);
-            out_r.copy_from_slice(&maps[n..]);
-        }
+            .map_err(|e| format!("the GPU dense matching's readback failed: {e}"))?;
+        // Mapped from here: unmapped whatever happens, so that the buffer can be used again.
+        let copied = b
+            .staging
+            .slice(..bytes)
+            .get_mapped_range()
+            .map_err(|e| e.to_string())
+            .and_then(|view| {
+                let maps: &[f32] = bytemuck::try_cast_slice(&view).map_err(|e| e.to_string())?;
+                out_l.copy_from_slice(&maps[..n]);
+                out_r.copy_from_slice(&maps[n..]);
+                Ok(())
+            });
         b.staging.unmap();
+        copied.map_err(|e| format!("the GPU dense matching's readback failed: {e}"))?;
         Ok(DenseGpuTiming {
             raster_ms,
             upload_ms,

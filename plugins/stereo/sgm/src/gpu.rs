@@ -835,27 +835,41 @@ impl SgmGpu {
         let mut stamps = Vec::new();
         let mut buffers = vec![&f.staging[slot]];
         buffers.extend(self.timestamps.as_ref().filter(|_| ts).map(|t| &t.read));
+        // Every mapping is waited for and undone, even after an error, so that the readback
+        // buffers can be used again.
+        let mut failure = None;
         for (k, (buf, rx)) in buffers.iter().zip(mapped).enumerate() {
-            rx.recv()
-                .map_err(|e| e.to_string())?
-                .map_err(|e| e.to_string())?;
-            {
-                let view = buf
-                    .slice(..)
-                    .get_mapped_range()
-                    .map_err(|e| e.to_string())?;
-                if k == 0 {
+            match rx.recv() {
+                Ok(Ok(())) => {}
+                Ok(Err(e)) => {
+                    failure.get_or_insert(e.to_string());
+                    continue;
+                }
+                Err(e) => {
+                    failure.get_or_insert(e.to_string());
+                    continue;
+                }
+            }
+            match buf.slice(..).get_mapped_range() {
+                Ok(view) if k == 0 => {
                     // NaN where invalid already (`finish`): a plain copy. (Split over rayon's
                     // threads it took 0.31 ms on the H100 machine instead of 0.19.)
                     d = bytemuck::pod_collect_to_vec(&view[..bytes]);
-                } else {
+                }
+                Ok(view) => {
                     stamps = view
                         .chunks_exact(8)
                         .map(|b| u64::from_le_bytes(b.try_into().unwrap_or_default()))
                         .collect();
                 }
+                Err(e) => {
+                    failure.get_or_insert(e.to_string());
+                }
             }
             buf.unmap();
+        }
+        if let Some(e) = failure {
+            return Err(format!("the GPU SGM readback failed: {e}"));
         }
         let after_submit = t_submit.elapsed().as_secs_f64() * 1e3;
         timing.copy_ms = t_copy.elapsed().as_secs_f64() * 1e3;
