@@ -164,6 +164,11 @@ enum Command {
         /// Write the figures as JSON here.
         #[arg(long)]
         out: Option<PathBuf>,
+        /// Recording of each organ's first run: save:PATH.rrd | spawn | connect[:HOST:PORT] |
+        /// off (the truth's and every method's scope trajectory and wall points, step by step,
+        /// under `/observability/<organ>/<method>`).
+        #[arg(long, default_value = "off")]
+        rerun: String,
     },
 }
 
@@ -472,8 +477,12 @@ fn run(command: Command) -> anyhow::Result<()> {
             rank_steps,
             seed,
             out,
+            rerun,
         } => {
             use misslam_eval_observability as obs;
+            let mode: RerunMode = rerun
+                .parse()
+                .map_err(|e: String| anyhow::anyhow!("--rerun {e}"))?;
             let organs = organs
                 .split(',')
                 .map(|o| obs::scene::Organ::parse(o.trim()))
@@ -498,6 +507,16 @@ fn run(command: Command) -> anyhow::Result<()> {
             print!("{}", study.table());
             if let Some(path) = out {
                 write_json(&path, &study)?;
+            }
+            if let Some(mut rec) = Recorder::open(&mode, "observability")
+                .map_err(|e| anyhow::anyhow!("--rerun: {e}"))?
+            {
+                for &organ in &organs {
+                    let (s, estimates) =
+                        obs::run_once(&scene(organ), &p).map_err(anyhow::Error::msg)?;
+                    log_observability(&mut rec, organ.name(), &s, &estimates)?;
+                }
+                rec.flush().map_err(|e| anyhow::anyhow!("--rerun: {e}"))?;
             }
             Ok(())
         }
@@ -576,4 +595,55 @@ pub(crate) fn write_json(
 ) -> anyhow::Result<()> {
     std::fs::write(path, serde_json::to_string_pretty(value)?)
         .with_context(|| format!("writing {}", path.display()))
+}
+
+/// Logs one observability run step by step: the truth's and each method's scope pose (with its
+/// trajectory) and wall points, in the plane z = 0, under `/observability/<organ>/<who>`.
+fn log_observability(
+    rec: &mut Recorder,
+    organ: &str,
+    s: &misslam_eval_observability::scene::Scene,
+    estimates: &[(
+        misslam_eval_observability::Method,
+        misslam_eval_observability::Estimate,
+    )],
+) -> anyhow::Result<()> {
+    use misslam::framework::nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+    use misslam::framework::payload::{Payload, PointCloud, Pose, TrackingState};
+    use misslam_eval_observability::scene::Pose2;
+    use std::sync::Arc;
+    let pose = |q: &Pose2| {
+        Payload::Pose(Arc::new(Pose {
+            world_from_camera: Isometry3::from_parts(
+                Translation3::new(q.x, q.y, 0.0),
+                UnitQuaternion::from_axis_angle(&Vector3::z_axis(), q.th),
+            ),
+            state: TrackingState::Tracking,
+        }))
+    };
+    let wall = |f: &[misslam::framework::nalgebra::Vector2<f64>]| {
+        Payload::PointCloud(Arc::new(PointCloud {
+            positions: f.iter().map(|p| [p.x as f32, p.y as f32, 0.0]).collect(),
+            colors: None,
+        }))
+    };
+    let e = |e: misslam::framework::recorder::RecorderError| anyhow::anyhow!("--rerun: {e}");
+    for n in 0..s.params.steps {
+        rec.begin_frame(n as u64, None);
+        let base = format!("observability/{organ}");
+        rec.log_payload(&format!("{base}/truth/pose"), &pose(&s.poses[n]))
+            .map_err(e)?;
+        rec.log_payload(&format!("{base}/truth/wall"), &wall(&s.truth[n]))
+            .map_err(e)?;
+        for (m, est) in estimates {
+            let path = format!("{base}/{}", m.name());
+            rec.log_payload(&format!("{path}/pose"), &pose(&est.poses[n]))
+                .map_err(e)?;
+            if let Some(f) = &est.features {
+                rec.log_payload(&format!("{path}/wall"), &wall(&f[n]))
+                    .map_err(e)?;
+            }
+        }
+    }
+    Ok(())
 }

@@ -595,9 +595,12 @@ fn observability_study_prints_the_table_and_writes_json() {
     let dir = std::env::temp_dir().join(format!("misslam-obs-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let json = dir.join("obs.json");
+    let rrd = dir.join("obs.rrd");
     let out = misslam()
         .args(["observability", "--organs", "liver", "--runs", "2", "--out"])
         .arg(&json)
+        .arg("--rerun")
+        .arg(format!("save:{}", rrd.display()))
         .output()
         .unwrap();
     let text = String::from_utf8_lossy(&out.stdout);
@@ -621,6 +624,20 @@ fn observability_study_prints_the_table_and_writes_json() {
     assert_eq!(organ["rank"][2]["deficiency"], 24);
     assert_eq!(organ["rank"][3]["method"], "time_series");
     assert_eq!(organ["rank"][3]["deficiency"], 0);
+    // The first run, step by step, in the recording.
+    assert!(std::fs::metadata(&rrd).unwrap().len() > 0);
+    if let Some(print) = common::rerun_verified(&rrd) {
+        let text = print("-v");
+        for needle in [
+            "/observability/liver/truth/pose@Transform3D:mat3x3",
+            "/observability/liver/truth/wall@Points3D:positions",
+            "/observability/liver/time_series/pose_trajectory@LineStrips3D:strips",
+            "/observability/liver/ed/wall@Points3D:positions",
+            "/observability/liver/odometry/pose@Transform3D:translation",
+        ] {
+            assert!(text.contains(needle), "{needle} missing from the recording");
+        }
+    }
     let bad = misslam()
         .args(["observability", "--organs", "heart,spleen"])
         .output()

@@ -959,3 +959,17 @@ impl Study {
         s
     }
 }
+
+/// One run of every method on the scene of `scene` (its seed), with the estimates, for a
+/// viewer: the scene and each method's estimate.
+pub fn run_once(
+    scene: &SceneParams,
+    p: &EstimatorParams,
+) -> Result<(Scene, Vec<(Method, Estimate)>), String> {
+    let s = Scene::simulate(scene)?;
+    let estimates = Method::ALL
+        .iter()
+        .map(|&m| estimate(m, &s, p).map(|e| (m, e)))
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok((s, estimates))
+}
