@@ -155,6 +155,10 @@ enum Command {
         /// Hold the coefficients fitted on the still period instead of estimating them.
         #[arg(long)]
         fixed_coefficients: bool,
+        /// Fit all the coefficients freely (total least squares) instead of as a periodic
+        /// motion (the root at 1 and undamped harmonics imposed).
+        #[arg(long)]
+        free_fit: bool,
         /// Steps of the rank test's scene (half of them still).
         #[arg(long, default_value_t = 16)]
         rank_steps: usize,
@@ -474,6 +478,7 @@ fn run(command: Command) -> anyhow::Result<()> {
             ts_sigma_mm,
             order,
             fixed_coefficients,
+            free_fit,
             rank_steps,
             seed,
             out,
@@ -492,6 +497,7 @@ fn run(command: Command) -> anyhow::Result<()> {
                 ts_sigma_mm,
                 order,
                 estimate_coefficients: !fixed_coefficients,
+                periodic: !free_fit,
                 ..Default::default()
             };
             let scene = |organ| obs::scene::SceneParams {

@@ -5,7 +5,8 @@
 
 use misslam_eval_observability::scene::{Organ, Scene, SceneParams};
 use misslam_eval_observability::{
-    errors, estimate, fit_recurrence, information_rank, study_organ, EstimatorParams, Method,
+    errors, estimate, fit_periodic, fit_recurrence, information_rank, study_organ, EstimatorParams,
+    Method,
 };
 
 #[test]
@@ -39,16 +40,21 @@ fn every_organ_moves_by_its_order_2h_plus_1_recurrence() {
 
 #[test]
 fn noise_free_still_period_gives_the_true_coefficients() {
-    for organ in [Organ::Heart, Organ::Liver] {
+    for organ in Organ::ALL {
         let s = Scene::simulate(&SceneParams {
             obs_sigma_mm: 0.0,
             ..SceneParams::new(organ)
         })
         .unwrap();
         let want = s.true_recurrence();
-        let got = fit_recurrence(&s, want.len(), 0.0).unwrap();
-        for (g, w) in got.iter().zip(&want) {
-            assert!((g - w).abs() < 1e-6, "{organ:?}: {got:?} against {want:?}");
+        for got in [
+            fit_recurrence(&s, want.len(), 0.0).unwrap(),
+            fit_periodic(&s, want.len()).unwrap(),
+        ] {
+            assert_eq!(got.len(), want.len());
+            for (g, w) in got.iter().zip(&want) {
+                assert!((g - w).abs() < 1e-6, "{organ:?}: {got:?} against {want:?}");
+            }
         }
     }
 }
@@ -120,14 +126,24 @@ fn exact_observations_fix_the_pose_only_with_the_time_series() {
     assert!(stat.position_rmse_mm > 2.0, "{stat:?}");
 }
 
-/// The Monte Carlo study on the heart and the liver (3 runs): the time series ahead of the rigid
-/// map, ED and FEM on position and of the rigid map on features; ED and FEM not much better
-/// than dead reckoning on position.
+/// The Monte Carlo study (3 runs): on the heart with the free fit and on the liver with the
+/// periodic one (the default), the time series ahead of the rigid map, ED and FEM on position
+/// and of the rigid map on features; on the lung (the rigid map's best case: a swell symmetric
+/// about the scope) the default fit stays level with the rigid map on position and well ahead on
+/// features; ED and FEM not much better than dead reckoning on position.
 #[test]
 fn monte_carlo_ranks_the_time_series_first_where_the_scene_breathes_or_beats() {
-    let p = EstimatorParams::default();
-    for organ in [Organ::Heart, Organ::Liver] {
-        let r = study_organ(&SceneParams::new(organ), &p, 3, 12).unwrap();
+    let periodic = EstimatorParams::default();
+    let free = EstimatorParams {
+        periodic: false,
+        ..Default::default()
+    };
+    for (organ, p) in [
+        (Organ::Heart, &free),
+        (Organ::Liver, &periodic),
+        (Organ::Lung, &periodic),
+    ] {
+        let r = study_organ(&SceneParams::new(organ), p, 3, 12).unwrap();
         let get = |m: Method| r.methods.iter().find(|x| x.method == m).unwrap().clone();
         let (odo, stat, ed, fem, ts) = (
             get(Method::Odometry),
@@ -136,23 +152,31 @@ fn monte_carlo_ranks_the_time_series_first_where_the_scene_breathes_or_beats() {
             get(Method::Fem),
             get(Method::TimeSeries),
         );
-        assert!(
-            ts.position_rmse_mm.mean < 0.8 * stat.position_rmse_mm.mean,
-            "{organ:?}: {ts:?} against {stat:?}"
-        );
-        assert!(
-            ts.position_rmse_mm.mean < 0.2 * ed.position_rmse_mm.mean,
-            "{organ:?}: {ts:?} against {ed:?}"
-        );
-        assert!(
-            ts.feature_rmse_mm.mean < 0.2 * stat.feature_rmse_mm.mean,
-            "{organ:?}"
-        );
-        assert!(
-            ts.position_rmse_mm.mean < 0.2 * fem.position_rmse_mm.mean,
-            "{organ:?}: {ts:?} against {fem:?}"
-        );
+        let (ts_pos, stat_pos) = (ts.position_rmse_mm.mean, stat.position_rmse_mm.mean);
+        if organ == Organ::Lung {
+            assert!(
+                ts_pos < 1.5 * stat_pos,
+                "{organ:?}: {ts:?} against {stat:?}"
+            );
+            assert!(
+                ts.feature_rmse_mm.mean < 0.5 * stat.feature_rmse_mm.mean,
+                "{organ:?}"
+            );
+        } else {
+            assert!(
+                ts_pos < 0.8 * stat_pos,
+                "{organ:?}: {ts:?} against {stat:?}"
+            );
+            assert!(
+                ts.feature_rmse_mm.mean < 0.2 * stat.feature_rmse_mm.mean,
+                "{organ:?}"
+            );
+        }
         for m in [&ed, &fem] {
+            assert!(
+                ts_pos < 0.2 * m.position_rmse_mm.mean,
+                "{organ:?}: {ts:?} against {m:?}"
+            );
             assert!(
                 m.position_rmse_mm.mean > 0.5 * odo.position_rmse_mm.mean,
                 "{organ:?}: {m:?} against {odo:?}"
