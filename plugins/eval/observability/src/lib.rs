@@ -23,11 +23,16 @@
 //! [`run_study`] runs them by Monte Carlo (RMSE of position and heading against the truth) and
 //! tests the rank of each one's Fisher information without odometry ([`information_rank`]).
 
+pub mod fit;
 pub mod lsq;
 pub mod scene;
+pub mod study;
 
-use misslam_framework::nalgebra::{DMatrix, Matrix2, Vector2};
-use scene::{wrap, Organ, Pose2, Scene, SceneParams};
+pub use fit::*;
+pub use study::*;
+
+use misslam_framework::nalgebra::{Matrix2, Vector2};
+use scene::{wrap, Pose2, Scene};
 
 /// The estimators compared.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
@@ -199,6 +204,63 @@ fn obs_residual(p: &Pose2, f: &Vector2<f64>, z: &Vector2<f64>, sigma: f64, out: 
     let e = p.to_local(f) - z;
     out[0] = e.x / sigma;
     out[1] = e.y / sigma;
+}
+
+/// Adds a position per feature per step as unknowns (after the poses, already in `x`), each
+/// started where its observation puts it from the dead-reckoned pose `dr`, with its
+/// observation residual; returns where feature j of step n sits in `x`.
+fn per_step_features(
+    prob: &mut lsq::Problem,
+    x: &mut Vec<f64>,
+    s: &Scene,
+    dr: &[Pose2],
+    sigma: f64,
+) -> impl Fn(usize, usize) -> usize + Copy {
+    let (np, m) = (3 * s.params.steps, s.params.features);
+    let fv = move |n: usize, j: usize| np + 2 * (n * m + j);
+    for (n, pose) in dr.iter().enumerate() {
+        for (j, z) in s.observations[n].iter().enumerate() {
+            let z = *z;
+            let f = pose
+                .compose(&Pose2 {
+                    x: z.x,
+                    y: z.y,
+                    th: 0.0,
+                })
+                .p();
+            x.extend([f.x, f.y]);
+            let v = fv(n, j);
+            prob.add(
+                vec![3 * n, 3 * n + 1, 3 * n + 2, v, v + 1],
+                2,
+                move |v, out| {
+                    obs_residual(&pose_of(v), &Vector2::new(v[3], v[4]), &z, sigma, out);
+                },
+            );
+        }
+    }
+    fv
+}
+
+/// The estimate of a problem built by [`per_step_features`]: the poses and the features.
+fn read_per_step(x: &[f64], nsteps: usize, m: usize) -> Estimate {
+    let np = 3 * nsteps;
+    Estimate {
+        poses: (0..nsteps).map(|n| pose_of(&x[3 * n..])).collect(),
+        features: Some(
+            (0..nsteps)
+                .map(|n| {
+                    (0..m)
+                        .map(|j| {
+                            let v = np + 2 * (n * m + j);
+                            Vector2::new(x[v], x[v + 1])
+                        })
+                        .collect()
+                })
+                .collect(),
+        ),
+        info: Default::default(),
+    }
 }
 
 /// ED layout: nodes (feature indices of the first view), each feature's nodes and weights, the
@@ -423,28 +485,9 @@ pub fn build_with(
             ))
         }
         Method::Fem => {
-            let fv = move |n: usize, j: usize| np + 2 * (n * m + j);
+            let fv = per_step_features(&mut prob, &mut x, s, &dr, so);
             let ks = p.fem_stiffness.sqrt();
-            for (n, pose) in dr.iter().enumerate() {
-                for j in 0..m {
-                    let z = s.observations[n][j];
-                    let f = pose
-                        .compose(&Pose2 {
-                            x: z.x,
-                            y: z.y,
-                            th: 0.0,
-                        })
-                        .p();
-                    x.extend([f.x, f.y]);
-                    let v = fv(n, j);
-                    prob.add(
-                        vec![3 * n, 3 * n + 1, 3 * n + 2, v, v + 1],
-                        2,
-                        move |v, out| {
-                            obs_residual(&pose_of(v), &Vector2::new(v[3], v[4]), &z, so, out);
-                        },
-                    );
-                }
+            for n in 0..nsteps {
                 // Strain energy of a bar of rest length L: (k / 2) L ((l - L) / L)^2.
                 for j in 0..m {
                     for step in [1, 2] {
@@ -463,19 +506,7 @@ pub fn build_with(
             Ok((
                 prob,
                 x,
-                Box::new(move |x: &[f64]| Estimate {
-                    poses: (0..nsteps).map(|n| pose_of(&x[3 * n..])).collect(),
-                    features: Some(
-                        (0..nsteps)
-                            .map(|n| {
-                                (0..m)
-                                    .map(|j| Vector2::new(x[fv(n, j)], x[fv(n, j) + 1]))
-                                    .collect()
-                            })
-                            .collect(),
-                    ),
-                    info: Default::default(),
-                }),
+                Box::new(move |x: &[f64]| read_per_step(x, nsteps, m)),
             ))
         }
         Method::TimeSeries => {
@@ -484,28 +515,7 @@ pub fn build_with(
                 None => fit_for(s, p)?,
             };
             let t = c.len();
-            let fv = move |n: usize, j: usize| np + 2 * (n * m + j);
-            for (n, pose) in dr.iter().enumerate() {
-                for j in 0..m {
-                    let z = s.observations[n][j];
-                    let f = pose
-                        .compose(&Pose2 {
-                            x: z.x,
-                            y: z.y,
-                            th: 0.0,
-                        })
-                        .p();
-                    x.extend([f.x, f.y]);
-                    let v = fv(n, j);
-                    prob.add(
-                        vec![3 * n, 3 * n + 1, 3 * n + 2, v, v + 1],
-                        2,
-                        move |v, out| {
-                            obs_residual(&pose_of(v), &Vector2::new(v[3], v[4]), &z, so, out);
-                        },
-                    );
-                }
-            }
+            let fv = per_step_features(&mut prob, &mut x, s, &dr, so);
             let sf = p.ts_sigma_mm;
             let cv = x.len();
             let free = p.estimate_coefficients;
@@ -554,196 +564,10 @@ pub fn build_with(
             Ok((
                 prob,
                 x,
-                Box::new(move |x: &[f64]| Estimate {
-                    poses: (0..nsteps).map(|n| pose_of(&x[3 * n..])).collect(),
-                    features: Some(
-                        (0..nsteps)
-                            .map(|n| {
-                                (0..m)
-                                    .map(|j| Vector2::new(x[fv(n, j)], x[fv(n, j) + 1]))
-                                    .collect()
-                            })
-                            .collect(),
-                    ),
-                    info: Default::default(),
-                }),
+                Box::new(move |x: &[f64]| read_per_step(x, nsteps, m)),
             ))
         }
     }
-}
-
-/// The time series' order for `s`: `p.order`, or 2H + 1 for the organ's H frequencies.
-pub fn order_of(s: &Scene, p: &EstimatorParams) -> usize {
-    if p.order > 0 {
-        p.order
-    } else {
-        2 * s.params.organ.omegas().len() + 1
-    }
-}
-
-/// The coefficients c_1..c_t of f^n = sum c_i f^{n-i}, fitted to the features seen during the
-/// still period (the world frame is the start pose's, so those observations are world
-/// positions), every feature and both coordinates sharing them. The regressors are noisy as
-/// much as the targets, so the fit is total least squares (the right singular vector of
-/// [f^{n-1} .. f^{n-t} | f^n] with the smallest singular value, as in linear prediction): plain
-/// least squares shrinks the coefficients towards a smoother motion (heart, 0.3 mm noise: a sum
-/// of |c_i| of 2.6 against the truth's 18.0). `ridge` > 0 instead takes ridge-regularised least
-/// squares (relative to the regressors' scale).
-pub fn fit_recurrence(s: &Scene, t: usize, ridge: f64) -> Result<Vec<f64>, String> {
-    let sp = &s.params;
-    if t == 0 || sp.static_steps <= t {
-        return Err(format!(
-            "the time series' order {t} needs more still steps than {} (`static_steps`)",
-            sp.static_steps
-        ));
-    }
-    let obs = &s.observations[..sp.static_steps];
-    let rows = (sp.static_steps - t) * sp.features * 2;
-    // Centred per feature and axis over the still period would remove the constant mode the
-    // recurrence must keep (its root at 1), so the raw positions are used.
-    let mut a = DMatrix::<f64>::zeros(rows, t + 1);
-    let mut r = 0;
-    for n in t..sp.static_steps {
-        for (j, target) in obs[n].iter().enumerate() {
-            for (axis, value) in target.iter().enumerate() {
-                for i in 0..t {
-                    a[(r, i)] = obs[n - 1 - i][j][axis];
-                }
-                a[(r, t)] = *value;
-                r += 1;
-            }
-        }
-    }
-    let c: Vec<f64> = if ridge > 0.0 {
-        let x = a.columns(0, t).into_owned();
-        let y = a.column(t).into_owned();
-        let mut ata = x.transpose() * &x;
-        let scale = ata.diagonal().max().max(1e-300);
-        for i in 0..t {
-            ata[(i, i)] += ridge * scale;
-        }
-        ata.cholesky()
-            .ok_or("the time series' fit is singular: lengthen the still period")?
-            .solve(&(x.transpose() * y))
-            .iter()
-            .copied()
-            .collect()
-    } else {
-        let svd = a.svd(false, true);
-        let v_t = svd.v_t.ok_or("the time series' fit: no singular vectors")?;
-        let k = svd
-            .singular_values
-            .iter()
-            .enumerate()
-            .min_by(|x, y| x.1.total_cmp(y.1))
-            .map(|x| x.0)
-            .ok_or("the time series' fit: no singular values")?;
-        let v = v_t.row(k);
-        if v[t].abs() < 1e-12 {
-            return Err("the time series' fit is degenerate: lengthen the still period".into());
-        }
-        (0..t).map(|i| -v[i] / v[t]).collect()
-    };
-    if c.iter().any(|x| !x.is_finite()) {
-        return Err("the time series' fit is not finite".into());
-    }
-    Ok(c)
-}
-
-/// The coefficients `p` asks for on `s`: [`fit_periodic`] for an odd order with `p.periodic`,
-/// else [`fit_recurrence`].
-pub fn fit_for(s: &Scene, p: &EstimatorParams) -> Result<Vec<f64>, String> {
-    let t = order_of(s, p);
-    if p.periodic && !t.is_multiple_of(2) {
-        fit_periodic(s, t)
-    } else {
-        fit_recurrence(s, t, p.ridge)
-    }
-}
-
-/// The coefficients of an order-t recurrence (t odd) for a periodic motion, fitted on the still
-/// period: a sum of H = (t - 1) / 2 undamped harmonics plus a constant has the characteristic
-/// polynomial (z - 1) q(z) with q palindromic (q(z) = prod_h (z^2 - 2 cos(w_h) z + 1)), so its
-/// first differences g(n) = f(n) - f(n - 1) satisfy
-/// g(n) + g(n - 2H) = sum_{k<H} u_k (g(n - k) + g(n - 2H + k)) + u_H g(n - H):
-/// H unknowns, fitted by total least squares over every feature and axis, instead of t free
-/// ones (better conditioned: the free fit of order 5 on the lung's 24 noisy still steps put its
-/// last coefficient at 0.01 against the truth's 1).
-pub fn fit_periodic(s: &Scene, t: usize) -> Result<Vec<f64>, String> {
-    periodic_parameters(s, t).map(|u| coefficients_of(&u))
-}
-
-/// The H = (t - 1) / 2 parameters u of [`fit_periodic`], fitted on the still period.
-pub fn periodic_parameters(s: &Scene, t: usize) -> Result<Vec<f64>, String> {
-    let sp = &s.params;
-    if t.is_multiple_of(2) {
-        return Err(format!("the periodic fit needs an odd order, not {t}"));
-    }
-    let h = (t - 1) / 2;
-    if h == 0 {
-        return Ok(Vec::new());
-    }
-    if sp.static_steps < 2 * h + 3 {
-        return Err(format!(
-            "the time series' order {t} needs more still steps than {} (`static_steps`)",
-            sp.static_steps
-        ));
-    }
-    let obs = &s.observations[..sp.static_steps];
-    let g = |n: usize, j: usize, axis: usize| obs[n][j][axis] - obs[n - 1][j][axis];
-    let rows = (sp.static_steps - 2 * h - 1) * sp.features * 2;
-    let mut a = DMatrix::<f64>::zeros(rows, h + 1);
-    let mut r = 0;
-    for n in 2 * h + 1..sp.static_steps {
-        for j in 0..sp.features {
-            for axis in 0..2 {
-                for k in 1..h {
-                    a[(r, k - 1)] = g(n - k, j, axis) + g(n - 2 * h + k, j, axis);
-                }
-                a[(r, h - 1)] = g(n - h, j, axis);
-                a[(r, h)] = g(n, j, axis) + g(n - 2 * h, j, axis);
-                r += 1;
-            }
-        }
-    }
-    let svd = a.svd(false, true);
-    let v_t = svd.v_t.ok_or("the periodic fit: no singular vectors")?;
-    let k = svd
-        .singular_values
-        .iter()
-        .enumerate()
-        .min_by(|x, y| x.1.total_cmp(y.1))
-        .map(|x| x.0)
-        .ok_or("the periodic fit: no singular values")?;
-    let v = v_t.row(k);
-    if v[h].abs() < 1e-12 {
-        return Err("the periodic fit is degenerate: lengthen the still period".into());
-    }
-    let u: Vec<f64> = (0..h).map(|i| -v[i] / v[h]).collect();
-    if u.iter().any(|x| !x.is_finite()) {
-        return Err("the periodic fit is not finite".into());
-    }
-    Ok(u)
-}
-
-/// The recurrence's coefficients c_1..c_{2H+1} of the periodic parameters u_1..u_H
-/// ([`periodic_parameters`]): c_i = -p_i for p(z) = (z - 1) q(z), q palindromic with
-/// q = 1, -u_1, ..., -u_H, ..., -u_1, 1.
-pub fn coefficients_of(u: &[f64]) -> Vec<f64> {
-    let h = u.len();
-    let mut q = vec![0.0; 2 * h + 1];
-    q[0] = 1.0;
-    q[2 * h] = 1.0;
-    for k in 1..=h {
-        q[k] = -u[k - 1];
-        q[2 * h - k] = -u[k - 1];
-    }
-    (1..=2 * h + 1)
-        .map(|i| {
-            let qi = if i <= 2 * h { q[i] } else { 0.0 };
-            -(qi - q[i - 1])
-        })
-        .collect()
 }
 
 /// Runs `method` on `s`.
@@ -760,350 +584,4 @@ pub fn estimate(method: Method, s: &Scene, p: &EstimatorParams) -> Result<Estima
     let mut e = read(&x);
     e.info = info;
     Ok(e)
-}
-
-/// Errors of an estimate against the truth.
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
-pub struct Errors {
-    /// RMSE of the position over the moving steps, mm.
-    pub position_rmse_mm: f64,
-    /// RMSE of the heading over the moving steps, degrees.
-    pub heading_rmse_deg: f64,
-    /// RMSE of the feature positions over every step, mm (NaN for odometry).
-    pub feature_rmse_mm: f64,
-}
-
-/// `e`'s errors on `s`.
-pub fn errors(s: &Scene, e: &Estimate) -> Errors {
-    let moving = s.params.static_steps..s.params.steps;
-    let k = moving.len() as f64;
-    let pos = moving
-        .clone()
-        .map(|n| (e.poses[n].p() - s.poses[n].p()).norm_squared())
-        .sum::<f64>();
-    let th = moving
-        .map(|n| wrap(e.poses[n].th - s.poses[n].th).powi(2))
-        .sum::<f64>();
-    let feature_rmse_mm = e.features.as_ref().map_or(f64::NAN, |f| {
-        let mut sum = 0.0;
-        let mut count = 0.0;
-        for (fe, ft) in f.iter().zip(&s.truth) {
-            for (a, b) in fe.iter().zip(ft) {
-                sum += (a - b).norm_squared();
-                count += 1.0;
-            }
-        }
-        (sum / count).sqrt()
-    });
-    Errors {
-        position_rmse_mm: (pos / k).sqrt(),
-        heading_rmse_deg: (th / k).sqrt().to_degrees(),
-        feature_rmse_mm,
-    }
-}
-
-/// The rank of a method's Fisher information without odometry.
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
-pub struct RankTest {
-    /// The method.
-    pub method: Method,
-    /// Unknowns.
-    pub unknowns: usize,
-    /// Numerical rank of J^T J (eigenvalues above 1e-12 of the largest; the unobservable
-    /// directions give about 1e-16).
-    pub rank: usize,
-    /// Unknowns less rank: the unobservable directions.
-    pub deficiency: usize,
-    /// The smallest eigenvalue kept over the largest.
-    pub smallest_kept: f64,
-    /// The largest eigenvalue dropped over the largest (0 when none is dropped).
-    pub largest_dropped: f64,
-}
-
-/// The rank of `method`'s Fisher information on `s` without odometry, at the true poses with
-/// the method's features or nodes at their initial values (the time series: the true features
-/// and the motion's true coefficients, held: the information about the states under the model).
-pub fn information_rank(
-    method: Method,
-    s: &Scene,
-    p: &EstimatorParams,
-) -> Result<RankTest, String> {
-    // The information about the states (poses and features), the coefficients known.
-    let p = &EstimatorParams {
-        estimate_coefficients: false,
-        ..p.clone()
-    };
-    let truth = s.true_recurrence();
-    let (prob, mut x, _) = build_with(method, s, p, false, Some(&truth))?;
-    for (n, q) in s.poses.iter().enumerate() {
-        x[3 * n..3 * n + 3].copy_from_slice(&[q.x, q.y, q.th]);
-    }
-    if method == Method::TimeSeries {
-        let np = 3 * s.params.steps;
-        for (n, fs) in s.truth.iter().enumerate() {
-            for (j, f) in fs.iter().enumerate() {
-                let v = np + 2 * (n * s.params.features + j);
-                x[v] = f.x;
-                x[v + 1] = f.y;
-            }
-        }
-    }
-    let info = prob.information(&x);
-    let eig = misslam_framework::nalgebra::SymmetricEigen::new(info);
-    let max = eig.eigenvalues.iter().fold(0.0f64, |a, &b| a.max(b.abs()));
-    let tol = 1e-12 * max;
-    let kept: Vec<f64> = eig
-        .eigenvalues
-        .iter()
-        .copied()
-        .filter(|&v| v > tol)
-        .collect();
-    let dropped = eig
-        .eigenvalues
-        .iter()
-        .copied()
-        .filter(|&v| v <= tol)
-        .fold(0.0f64, |a, b| a.max(b.abs()));
-    Ok(RankTest {
-        method,
-        unknowns: prob.n,
-        rank: kept.len(),
-        deficiency: prob.n - kept.len(),
-        smallest_kept: kept.iter().copied().fold(f64::INFINITY, f64::min) / max,
-        largest_dropped: dropped / max,
-    })
-}
-
-/// Mean, standard deviation, smallest and largest of a figure over the runs.
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
-pub struct Stat {
-    /// Mean.
-    pub mean: f64,
-    /// Standard deviation.
-    pub std: f64,
-    /// Smallest.
-    pub min: f64,
-    /// Largest.
-    pub max: f64,
-}
-
-impl Stat {
-    fn of(v: &[f64]) -> Stat {
-        let n = v.len().max(1) as f64;
-        let mean = v.iter().sum::<f64>() / n;
-        let var = v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n;
-        Stat {
-            mean,
-            std: var.sqrt(),
-            min: v.iter().copied().fold(f64::INFINITY, f64::min),
-            max: v.iter().copied().fold(f64::NEG_INFINITY, f64::max),
-        }
-    }
-}
-
-/// A method's figures over an organ's runs.
-#[derive(Clone, Debug, PartialEq, serde::Serialize)]
-pub struct MethodSummary {
-    /// The method.
-    pub method: Method,
-    /// Position RMSE over the moving steps, mm.
-    pub position_rmse_mm: Stat,
-    /// Heading RMSE over the moving steps, degrees.
-    pub heading_rmse_deg: Stat,
-    /// Feature RMSE over every step, mm (NaN for odometry).
-    pub feature_rmse_mm: Stat,
-}
-
-/// An organ's results.
-#[derive(Clone, Debug, PartialEq, serde::Serialize)]
-pub struct OrganStudy {
-    /// The organ.
-    pub organ: Organ,
-    /// The scene's parameters (the seed of the first run; run r uses seed + r).
-    pub scene: SceneParams,
-    /// Monte Carlo runs.
-    pub runs: usize,
-    /// The time series' order, its coefficients fitted on the first run and the true ones.
-    pub order: usize,
-    /// Fitted on the first run.
-    pub fitted_coefficients: Vec<f64>,
-    /// Of the true motion (the order 2H + 1 recurrence).
-    pub true_coefficients: Vec<f64>,
-    /// Each method's figures.
-    pub methods: Vec<MethodSummary>,
-    /// The Fisher information's rank test of each SLAM method, on the first run's scene
-    /// without odometry.
-    pub rank: Vec<RankTest>,
-}
-
-/// Monte Carlo of every method on `organ`: `runs` scenes (seeds `scene.seed + r`), and the
-/// rank test on a scene of `rank_steps` steps (half of them still) and the same features.
-pub fn study_organ(
-    scene: &SceneParams,
-    p: &EstimatorParams,
-    runs: usize,
-    rank_steps: usize,
-) -> Result<OrganStudy, String> {
-    if runs == 0 {
-        return Err("`runs` is 0: at least one Monte Carlo run".into());
-    }
-    let mut per: Vec<Vec<Errors>> = vec![Vec::new(); Method::ALL.len()];
-    let mut fitted = Vec::new();
-    let mut true_c = Vec::new();
-    let mut order = 0;
-    for r in 0..runs {
-        let sp = SceneParams {
-            seed: scene.seed + r as u64,
-            ..scene.clone()
-        };
-        let s = Scene::simulate(&sp)?;
-        if r == 0 {
-            order = order_of(&s, p);
-            fitted = fit_for(&s, p)?;
-            true_c = s.true_recurrence();
-        }
-        for (k, m) in Method::ALL.iter().enumerate() {
-            let e = estimate(*m, &s, p)?;
-            per[k].push(errors(&s, &e));
-        }
-    }
-    let methods = Method::ALL
-        .iter()
-        .zip(&per)
-        .map(|(m, es)| MethodSummary {
-            method: *m,
-            position_rmse_mm: Stat::of(&es.iter().map(|e| e.position_rmse_mm).collect::<Vec<_>>()),
-            heading_rmse_deg: Stat::of(&es.iter().map(|e| e.heading_rmse_deg).collect::<Vec<_>>()),
-            feature_rmse_mm: Stat::of(&es.iter().map(|e| e.feature_rmse_mm).collect::<Vec<_>>()),
-        })
-        .collect();
-    let rank_scene = Scene::simulate(&SceneParams {
-        steps: rank_steps,
-        static_steps: rank_steps / 2,
-        ..scene.clone()
-    })?;
-    let rank = [Method::Static, Method::Ed, Method::Fem, Method::TimeSeries]
-        .iter()
-        .map(|m| information_rank(*m, &rank_scene, p))
-        .collect::<Result<Vec<_>, _>>()?;
-    Ok(OrganStudy {
-        organ: scene.organ,
-        scene: scene.clone(),
-        runs,
-        order,
-        fitted_coefficients: fitted,
-        true_coefficients: true_c,
-        methods,
-        rank,
-    })
-}
-
-/// The whole study: every organ asked for, with the estimators' parameters.
-#[derive(Clone, Debug, PartialEq, serde::Serialize)]
-pub struct Study {
-    /// The estimators' parameters.
-    pub estimator: EstimatorParams,
-    /// Each organ's results.
-    pub organs: Vec<OrganStudy>,
-}
-
-/// [`study_organ`] for each of `organs`, each scene built by `scene` from the organ.
-pub fn run_study(
-    organs: &[Organ],
-    scene: impl Fn(Organ) -> SceneParams,
-    p: &EstimatorParams,
-    runs: usize,
-    rank_steps: usize,
-) -> Result<Study, String> {
-    let organs = organs
-        .iter()
-        .map(|&o| study_organ(&scene(o), p, runs, rank_steps))
-        .collect::<Result<Vec<_>, _>>()?;
-    Ok(Study {
-        estimator: p.clone(),
-        organs,
-    })
-}
-
-impl Study {
-    /// The tables: per organ and method, mean ± standard deviation of the RMSEs, each method's
-    /// position RMSE over the static map's, and the rank test.
-    pub fn table(&self) -> String {
-        use std::fmt::Write;
-        let mut s = String::new();
-        for o in &self.organs {
-            let _ = writeln!(
-                s,
-                "{} ({} runs, {} steps of which {} still, {} features; time series of order {}):",
-                o.organ.name(),
-                o.runs,
-                o.scene.steps,
-                o.scene.static_steps,
-                o.scene.features,
-                o.order
-            );
-            let _ = writeln!(
-                s,
-                "  {:<12} {:>18} {:>10} {:>18} {:>18}",
-                "method", "position RMSE mm", "/ static", "heading RMSE deg", "feature RMSE mm"
-            );
-            let base = o
-                .methods
-                .iter()
-                .find(|m| m.method == Method::Static)
-                .map_or(f64::NAN, |m| m.position_rmse_mm.mean);
-            for m in &o.methods {
-                let f = if m.feature_rmse_mm.mean.is_finite() {
-                    format!(
-                        "{:.3} ± {:.3}",
-                        m.feature_rmse_mm.mean, m.feature_rmse_mm.std
-                    )
-                } else {
-                    "-".into()
-                };
-                let _ = writeln!(
-                    s,
-                    "  {:<12} {:>18} {:>10.2} {:>18} {:>18}",
-                    m.method.name(),
-                    format!(
-                        "{:.3} ± {:.3}",
-                        m.position_rmse_mm.mean, m.position_rmse_mm.std
-                    ),
-                    m.position_rmse_mm.mean / base,
-                    format!(
-                        "{:.3} ± {:.3}",
-                        m.heading_rmse_deg.mean, m.heading_rmse_deg.std
-                    ),
-                    f
-                );
-            }
-            for r in &o.rank {
-                let _ = writeln!(
-                    s,
-                    "  Fisher information without odometry, {}: rank {} of {} unknowns (deficiency {}; smallest eigenvalue kept {:.1e}, largest dropped {:.1e} of the largest)",
-                    r.method.name(),
-                    r.rank,
-                    r.unknowns,
-                    r.deficiency,
-                    r.smallest_kept,
-                    r.largest_dropped
-                );
-            }
-        }
-        s
-    }
-}
-
-/// One run of every method on the scene of `scene` (its seed), with the estimates, for a
-/// viewer: the scene and each method's estimate.
-pub fn run_once(
-    scene: &SceneParams,
-    p: &EstimatorParams,
-) -> Result<(Scene, Vec<(Method, Estimate)>), String> {
-    let s = Scene::simulate(scene)?;
-    let estimates = Method::ALL
-        .iter()
-        .map(|&m| estimate(m, &s, p).map(|e| (m, e)))
-        .collect::<Result<Vec<_>, _>>()?;
-    Ok((s, estimates))
 }
