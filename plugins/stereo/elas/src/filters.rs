@@ -24,23 +24,28 @@ pub fn lr_check(
     check_rows(left, tmp, w, threshold, -1.0);
 }
 
-/// Invalidates pixels of `own` whose partner in `other` (at u + sign * d) disagrees.
+/// Invalidates pixels of `own` whose partner in `other` (at u + sign * d) disagrees; rows on
+/// rayon's threads.
 fn check_rows(own: &mut [f32], other: &[f32], w: usize, threshold: f32, sign: f32) {
-    for (row, orow) in own.chunks_mut(w).zip(other.chunks(w)) {
-        for (x, d) in row.iter_mut().enumerate() {
-            if !d.is_finite() {
-                continue;
+    use rayon::prelude::*;
+    own.par_chunks_mut(w)
+        .zip(other.par_chunks(w))
+        .for_each(|(row, orow)| {
+            for (x, d) in row.iter_mut().enumerate() {
+                if !d.is_finite() {
+                    continue;
+                }
+                // `(x + sign d).round()` as an integer, without the library call.
+                let xo = crate::dense::round_i32(x as f32 + sign * *d);
+                let ok = xo >= 0 && (xo as usize) < w && {
+                    let e = orow[xo as usize];
+                    e.is_finite() && (e - *d).abs() <= threshold
+                };
+                if !ok {
+                    *d = f32::NAN;
+                }
             }
-            let xo = (x as f32 + sign * *d).round();
-            let ok = xo >= 0.0 && (xo as usize) < w && {
-                let e = orow[xo as usize];
-                e.is_finite() && (e - *d).abs() <= threshold
-            };
-            if !ok {
-                *d = f32::NAN;
-            }
-        }
-    }
+        });
 }
 
 /// Interpolation across a disparity step larger than this takes the smaller disparity (the
@@ -121,57 +126,63 @@ fn to_sentinel(d: &[f32], buf: &mut Vec<f32>) {
 /// pixels weigh nothing and stay invalid; pixels within 4 of the border keep the other pass's
 /// value.
 pub fn adaptive_mean(d: &mut [f32], w: usize, h: usize, buf: &mut Vec<f32>) {
-    let (mut ws, mut fs) = (vec![0f32; w], vec![0f32; w]);
+    use rayon::prelude::*;
+    // Rows on rayon's threads, each with its own sums.
+    let sums = || (vec![0f32; w], vec![0f32; w]);
     // Horizontal: tap k of pixel x is x - 4 + k.
     to_sentinel(d, buf);
     if w >= 8 {
-        for (row, src) in d.chunks_mut(w).zip(buf.chunks(w)) {
-            let n = w - 7;
-            let centre = &src[4..4 + n];
-            ws[..n].fill(0.0);
-            fs[..n].fill(0.0);
-            for k in 0..8 {
-                let tap = &src[k..k + n];
-                for (((a, b), &v), &c) in ws[..n].iter_mut().zip(&mut fs[..n]).zip(tap).zip(centre)
+        d.par_chunks_mut(w)
+            .zip(buf.par_chunks(w))
+            .for_each_init(sums, |(ws, fs), (row, src)| {
+                let n = w - 7;
+                let centre = &src[4..4 + n];
+                ws[..n].fill(0.0);
+                fs[..n].fill(0.0);
+                for k in 0..8 {
+                    let tap = &src[k..k + n];
+                    for (((a, b), &v), &c) in
+                        ws[..n].iter_mut().zip(&mut fs[..n]).zip(tap).zip(centre)
+                    {
+                        let wt = (4.0 - (v - c).abs()).max(0.0);
+                        *a += wt;
+                        *b += wt * v;
+                    }
+                }
+                for (((o, &c), &a), &b) in row[4..4 + n].iter_mut().zip(centre).zip(&*ws).zip(&*fs)
                 {
-                    let wt = (4.0 - (v - c).abs()).max(0.0);
-                    *a += wt;
-                    *b += wt * v;
+                    if c != INVALID {
+                        *o = b / a;
+                    }
                 }
-            }
-            for (((o, &c), &a), &b) in row[4..4 + n].iter_mut().zip(centre).zip(&ws).zip(&fs) {
-                if c != INVALID {
-                    *o = b / a;
-                }
-            }
-        }
+            });
     }
     // Vertical, row by row: tap k of row y is row y - 4 + k.
     to_sentinel(d, buf);
     if h >= 8 {
-        for y in 4..h - 3 {
-            let centre = &buf[y * w..(y + 1) * w];
-            ws.fill(0.0);
-            fs.fill(0.0);
-            for k in 0..8 {
-                let tap = &buf[(y - 4 + k) * w..(y - 3 + k) * w];
-                for (((a, b), &v), &c) in ws.iter_mut().zip(&mut fs).zip(tap).zip(centre) {
-                    let wt = (4.0 - (v - c).abs()).max(0.0);
-                    *a += wt;
-                    *b += wt * v;
+        let buf = &*buf;
+        d.par_chunks_mut(w)
+            .enumerate()
+            .filter(|(y, _)| (4..h - 3).contains(y))
+            .for_each_init(sums, |(ws, fs), (y, row)| {
+                let centre = &buf[y * w..(y + 1) * w];
+                ws.fill(0.0);
+                fs.fill(0.0);
+                for k in 0..8 {
+                    let tap = &buf[(y - 4 + k) * w..(y - 3 + k) * w];
+                    for (((a, b), &v), &c) in ws.iter_mut().zip(fs.iter_mut()).zip(tap).zip(centre)
+                    {
+                        let wt = (4.0 - (v - c).abs()).max(0.0);
+                        *a += wt;
+                        *b += wt * v;
+                    }
                 }
-            }
-            for (((o, &c), &a), &b) in d[y * w..(y + 1) * w]
-                .iter_mut()
-                .zip(centre)
-                .zip(&ws)
-                .zip(&fs)
-            {
-                if c != INVALID {
-                    *o = b / a;
+                for (((o, &c), &a), &b) in row.iter_mut().zip(centre).zip(&*ws).zip(&*fs) {
+                    if c != INVALID {
+                        *o = b / a;
+                    }
                 }
-            }
-        }
+            });
     }
 }
 
@@ -268,6 +279,83 @@ mod tests {
         assert!((d[5] - 266.0 / 25.0).abs() < 1e-5, "{}", d[5]);
         assert_eq!(d[9], 30.0, "the step does not leak");
         assert_eq!(d[0], 10.0, "the border is left alone");
+    }
+
+    /// A seeded map of 37 x 23 with surfaces, steps and invalid pixels.
+    fn random_map(w: usize, h: usize) -> Vec<f32> {
+        let mut st = 0x1234_5678u32;
+        (0..w * h)
+            .map(|i| {
+                st ^= st << 13;
+                st ^= st >> 17;
+                st ^= st << 5;
+                if st.is_multiple_of(7) {
+                    N
+                } else {
+                    let base = if (i % w) < w / 2 { 12.0 } else { 30.0 };
+                    base + (st % 300) as f32 / 100.0
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn adaptive_mean_and_lr_check_on_rows_in_parallel_match_the_definition() {
+        let (w, h) = (37, 23);
+        let d = random_map(w, h);
+        // The definition, pixel by pixel: horizontal then vertical, invalid pixels at INVALID.
+        let sent = |v: f32| if v.is_finite() { v } else { INVALID };
+        let pass = |src: &[f32], at: &dyn Fn(usize, usize, usize) -> usize, lines, len| {
+            let mut out = src.to_vec();
+            for line in 0..lines {
+                for i in 4..len - 3 {
+                    let c = sent(src[at(line, i, 0)]);
+                    if c == INVALID {
+                        continue;
+                    }
+                    let (mut a, mut b) = (0f32, 0f32);
+                    for k in 0..8 {
+                        let v = sent(src[at(line, i + k, 4)]);
+                        let wt = (4.0 - (v - c).abs()).max(0.0);
+                        a += wt;
+                        b += wt * v;
+                    }
+                    out[at(line, i, 0)] = b / a;
+                }
+            }
+            out
+        };
+        let horizontal = pass(&d, &|y, x, back| y * w + x - back, h, w);
+        let want = pass(&horizontal, &|x, y, back| (y - back) * w + x, w, h);
+        let mut got = d.clone();
+        adaptive_mean(&mut got, w, h, &mut Vec::new());
+        same(&got, &want);
+        // The left-right check against its definition on every row.
+        let right = random_map(w, h);
+        let mut want = d.clone();
+        for y in 0..h {
+            for x in 0..w {
+                let v = d[y * w + x];
+                if !v.is_finite() {
+                    continue;
+                }
+                let xo = (x as f32 - v).round();
+                let ok = xo >= 0.0
+                    && (xo as usize) < w
+                    && right[y * w + xo as usize].is_finite()
+                    && (right[y * w + xo as usize] - v).abs() <= 2.0;
+                if !ok {
+                    want[y * w + x] = N;
+                }
+            }
+        }
+        let (mut l, mut r) = (d.clone(), right.clone());
+        lr_check(&mut l, &mut r, w, 2.0, false, &mut Vec::new());
+        same(&l, &want);
+        assert!(
+            want.iter().filter(|v| v.is_finite()).count() > 20,
+            "the case tests nothing"
+        );
     }
 
     #[test]
