@@ -63,20 +63,7 @@ pub fn fit_recurrence(s: &Scene, t: usize, ridge: f64) -> Result<Vec<f64>, Strin
             .copied()
             .collect()
     } else {
-        let svd = a.svd(false, true);
-        let v_t = svd.v_t.ok_or("the time series' fit: no singular vectors")?;
-        let k = svd
-            .singular_values
-            .iter()
-            .enumerate()
-            .min_by(|x, y| x.1.total_cmp(y.1))
-            .map(|x| x.0)
-            .ok_or("the time series' fit: no singular values")?;
-        let v = v_t.row(k);
-        if v[t].abs() < 1e-12 {
-            return Err("the time series' fit is degenerate: lengthen the still period".into());
-        }
-        (0..t).map(|i| -v[i] / v[t]).collect()
+        total_least_squares(a, "the time series' fit")?
     };
     if c.iter().any(|x| !x.is_finite()) {
         return Err("the time series' fit is not finite".into());
@@ -140,24 +127,7 @@ pub fn periodic_parameters(s: &Scene, t: usize) -> Result<Vec<f64>, String> {
             }
         }
     }
-    let svd = a.svd(false, true);
-    let v_t = svd.v_t.ok_or("the periodic fit: no singular vectors")?;
-    let k = svd
-        .singular_values
-        .iter()
-        .enumerate()
-        .min_by(|x, y| x.1.total_cmp(y.1))
-        .map(|x| x.0)
-        .ok_or("the periodic fit: no singular values")?;
-    let v = v_t.row(k);
-    if v[h].abs() < 1e-12 {
-        return Err("the periodic fit is degenerate: lengthen the still period".into());
-    }
-    let u: Vec<f64> = (0..h).map(|i| -v[i] / v[h]).collect();
-    if u.iter().any(|x| !x.is_finite()) {
-        return Err("the periodic fit is not finite".into());
-    }
-    Ok(u)
+    total_least_squares(a, "the periodic fit")
 }
 
 /// The recurrence's coefficients c_1..c_{2H+1} of the periodic parameters u_1..u_H
@@ -178,4 +148,30 @@ pub fn coefficients_of(u: &[f64]) -> Vec<f64> {
             -(qi - q[i - 1])
         })
         .collect()
+}
+
+/// Total least squares of [X | y] (the last column the target): the right singular vector v of
+/// the smallest singular value gives x = -v[..n] / v[n]. `what` names the fit in errors.
+fn total_least_squares(a: DMatrix<f64>, what: &str) -> Result<Vec<f64>, String> {
+    let n = a.ncols() - 1;
+    let svd = a.svd(false, true);
+    let v_t = svd
+        .v_t
+        .ok_or_else(|| format!("{what}: no singular vectors"))?;
+    let k = svd
+        .singular_values
+        .iter()
+        .enumerate()
+        .min_by(|x, y| x.1.total_cmp(y.1))
+        .map(|x| x.0)
+        .ok_or_else(|| format!("{what}: no singular values"))?;
+    let v = v_t.row(k);
+    if v[n].abs() < 1e-12 {
+        return Err(format!("{what} is degenerate: lengthen the still period"));
+    }
+    let x: Vec<f64> = (0..n).map(|i| -v[i] / v[n]).collect();
+    if x.iter().any(|v| !v.is_finite()) {
+        return Err(format!("{what} is not finite"));
+    }
+    Ok(x)
 }
