@@ -189,6 +189,16 @@ impl GpuContext {
         self.adapter_info.device_type == wgpu::DeviceType::DiscreteGpu
     }
 
+    /// A buffer of `size` bytes (at least 16, so that an empty image still binds) for `usage`.
+    pub fn buffer(&self, label: &str, size: u64, usage: wgpu::BufferUsages) -> wgpu::Buffer {
+        self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: size.max(16),
+            usage,
+            mapped_at_creation: false,
+        })
+    }
+
     /// Compiles a WGSL compute shader into a pipeline with an automatic layout.
     pub fn compute_pipeline(&self, label: &str, wgsl: &str, entry: &str) -> wgpu::ComputePipeline {
         let module = self

@@ -82,15 +82,7 @@ impl DenseGpu {
         {
             return;
         }
-        let dev = &ctx.device;
-        let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
-            dev.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size: size.max(16),
-                usage,
-                mapped_at_creation: false,
-            })
-        };
+        let buffer = |label: &str, size: u64, usage| ctx.buffer(label, size, usage);
         use wgpu::BufferUsages as U;
         let cands = cands.next_power_of_two().max(1024);
         let params = buffer("elas dense params", 48, U::UNIFORM | U::COPY_DST);

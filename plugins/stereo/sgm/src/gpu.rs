@@ -363,14 +363,7 @@ impl SgmGpu {
         self.frame = None;
         self.uniforms = Default::default();
         let dev = &ctx.device;
-        let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
-            dev.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size: size.max(16),
-                usage,
-                mapped_at_creation: false,
-            })
-        };
+        let buffer = |label: &str, size: u64, usage| ctx.buffer(label, size, usage);
         use wgpu::BufferUsages as U;
         let px = (w * h) as u64;
         let image_words = (w * h).div_ceil(4) as u64;
