@@ -20,8 +20,9 @@
 //! see. A surfel is scored where its depth is within `drift_max_depth_gap_mm` of the true depth
 //! at its pixel (in front of the surface, not behind a fold).
 //!
-//! Distances are exact point-to-triangle distances (a uniform grid over the GT triangles finds
-//! the nearest one). Both inputs must be in the same frame (world). The points, coloured by
+//! Distances are exact point-to-triangle distances (a bounding volume hierarchy over the GT
+//! triangles, rebuilt for each frame's mesh, finds the nearest one; its leaves test eight
+//! triangles at once). Both inputs must be in the same frame (world). The points, coloured by
 //! their error (blue 0 to red `color_max_mm`), go out on `colored` for the Rerun viewer.
 #![deny(missing_docs)]
 
@@ -128,6 +129,11 @@ pub struct ReconScores {
 /// Scores `points` against `gt`; returns the scores and each point's distance. Non-finite
 /// points are an error naming how many (a reconstruction must not hold NaN).
 pub fn score(points: &[V3], gt: &Mesh) -> Result<(ReconScores, Vec<f32>), String> {
+    check_points(points)?;
+    score_indexed(points, &SurfaceIndex::new(gt)?)
+}
+
+fn check_points(points: &[V3]) -> Result<(), String> {
     let bad = points
         .iter()
         .filter(|p| p.iter().any(|v| !v.is_finite()))
@@ -141,7 +147,12 @@ pub fn score(points: &[V3], gt: &Mesh) -> Result<(ReconScores, Vec<f32>), String
     if points.is_empty() {
         return Err("the reconstruction has no points".into());
     }
-    let index = SurfaceIndex::new(gt)?;
+    Ok(())
+}
+
+/// [`score`] against a surface already indexed (finite, non-empty `points`).
+fn score_indexed(points: &[V3], index: &SurfaceIndex) -> Result<(ReconScores, Vec<f32>), String> {
+    check_points(points)?;
     let dist: Vec<f32> = points.par_iter().map(|&p| index.distance(p)).collect();
     let n = dist.len() as f64;
     let mean = dist.iter().map(|&d| d as f64).sum::<f64>() / n;
@@ -174,6 +185,8 @@ pub struct EvalRecon {
     params: Params,
     means: FrameMeans,
     drift: Drift,
+    /// The GT surface's index, refit from frame to frame while its triangles stay the same.
+    index: Option<SurfaceIndex>,
 }
 
 impl Node for EvalRecon {
@@ -235,7 +248,17 @@ impl Node for EvalRecon {
             outputs.put("colored", PointCloud::default())?;
             return Ok(Flow::Continue);
         }
-        let (s, dist) = score(points, gt).map_err(NodeError::msg)?;
+        match self.index.as_mut() {
+            Some(index) => index.update(gt),
+            None => SurfaceIndex::new(gt).map(|i| {
+                self.index = Some(i);
+            }),
+        }
+        .map_err(|e| NodeError::msg(format!("frame {}: mesh_gt: {e}", frame.index)))?;
+        let Some(index) = self.index.as_ref() else {
+            return Err(NodeError::msg("no surface index"));
+        };
+        let (s, dist) = score_indexed(points, index).map_err(NodeError::msg)?;
         let mut values = vec![
             (k("mean_mm"), s.mean_mm),
             (k("rms_mm"), s.rms_mm),
@@ -388,6 +411,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
                 params: p,
                 means: FrameMeans::default(),
                 drift: Drift::default(),
+                index: None,
             })
         },
     ))
@@ -574,8 +598,8 @@ mod tests {
         for (k, dk) in d.iter().enumerate() {
             assert!((dk - 0.1 * (k + 1) as f32).abs() < 1e-4, "point {k}: {dk}");
         }
-        // Points far outside the grid (a diverged model): the exact distance to the plane's
-        // nearest edge or face, found by searching only the grid's cells.
+        // Points far outside the mesh (a diverged model): the exact distance to the plane's
+        // nearest edge or face.
         let index = SurfaceIndex::new(&gt).unwrap();
         for (p, want) in [
             ([0.0, 0.0, 1.0e5], 1.0e5 - 100.0),
