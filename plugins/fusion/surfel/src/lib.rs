@@ -659,10 +659,13 @@ impl SurfelNode {
             if removed > 0 {
                 m.retain(&keep);
             }
-            // 5. Graph growth, then every binding again (new nodes change the neighbourhoods).
+            // 5. Graph growth, then the bindings the new nodes change (those within a surfel's
+            // support: its k + 1 nearest nodes are then no longer the same). The others keep
+            // theirs, as every surfel does between growths.
             if graph.len() < self.p.max_nodes {
+                let first = graph.len();
                 if graph.grow(&grown) > 0 {
-                    m.bindings = graph.bind_all(&m.canon);
+                    graph.rebind_grown(&m.canon, &mut m.bindings, first);
                 }
             } else if !grown.is_empty() {
                 tracing::warn!(
@@ -879,6 +882,7 @@ mod tests {
             nodes: [0; misslam_deformation_ed::graph::MAX_K],
             weights: [0.0; misslam_deformation_ed::graph::MAX_K],
             len: 1,
+            support: f32::INFINITY,
         };
         b.weights[0] = 1.0;
         let (a_inv, a_t) = local_inverses(&b, &nm);
