@@ -147,4 +147,32 @@ mod tests {
         let err = Phantom::new(small(0), 3).err().unwrap();
         assert!(err.contains("render_threads"), "{err}");
     }
+
+    #[test]
+    fn the_frames_do_not_depend_on_the_threads() {
+        // The albedo is baked and the rows shaded on the pool's threads; one thread and three
+        // give the same phantom (a texture with its fine scales and sensor noise on).
+        let render = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| {
+                let mut p = Phantom::new(small(1), 5).unwrap();
+                (
+                    p.albedo_at([1.3, -2.7, 70.0], [0.0, 0.0, -1.0]),
+                    p.render(4).unwrap(),
+                )
+            })
+        };
+        let ((a1, f1), (a3, f3)) = (render(1), render(3));
+        assert_eq!(a1, a3);
+        assert!(same(&f1, &f3));
+        assert!(f1
+            .stereo
+            .left
+            .data
+            .iter()
+            .any(|&v| v != f1.stereo.left.data[0]));
+    }
 }
