@@ -310,6 +310,8 @@ pub struct SurfaceIndex {
     /// Per leaf, its node; per leaf lane, its triangle (for [`SurfaceIndex::update`]).
     leaf_node: Vec<u32>,
     lanes: Vec<u32>,
+    /// Each leaf's box, filled by `refit` before the nodes take them.
+    leaf_bounds: Vec<Aabb>,
     /// The mesh's triangles, to tell whether a new mesh is the same surface moved.
     triangles: Vec<[u32; 3]>,
     /// The leaves' summed box areas when the tree was built, against which a refit is judged.
@@ -317,8 +319,9 @@ pub struct SurfaceIndex {
     avx2: bool,
 }
 
-/// Each triangle's corners, checked.
-fn corners(mesh: &Mesh) -> Result<Vec<[V3; 3]>, String> {
+/// Checks that `mesh` has triangles, that they index its vertices, and that the vertices they
+/// use are finite.
+fn check(mesh: &Mesh) -> Result<(), String> {
     if mesh.triangles.is_empty() {
         return Err("the ground-truth mesh has no triangles".into());
     }
@@ -330,22 +333,23 @@ fn corners(mesh: &Mesh) -> Result<Vec<[V3; 3]>, String> {
     {
         return Err("a ground-truth triangle indexes past the vertices".into());
     }
-    let corners: Vec<[V3; 3]> = mesh
-        .triangles
-        .par_iter()
-        .map(|t| t.map(|i| mesh.vertices[i as usize]))
-        .collect();
-    if corners
-        .par_iter()
-        .any(|c| c.iter().flatten().any(|v| !v.is_finite()))
-    {
+    if mesh.triangles.par_iter().any(|t| {
+        t.iter()
+            .any(|&i| mesh.vertices[i as usize].iter().any(|v| !v.is_finite()))
+    }) {
         return Err("the ground-truth mesh has non-finite vertices".into());
     }
-    Ok(corners)
+    Ok(())
 }
 
-/// Builds the subtree over `items` (triangle index, centroid) into `nodes` and `leaves`;
-/// returns its root's index.
+/// Triangle `t`'s corners.
+#[inline]
+fn corners(mesh: &Mesh, t: u32) -> [V3; 3] {
+    mesh.triangles[t as usize].map(|i| mesh.vertices[i as usize])
+}
+
+/// Builds the subtree over `items` (triangle index, centroid) into `nodes`, and the triangles
+/// of its leaves' lanes into `lanes`; returns its root's index.
 fn build(items: &mut [(u32, V3)], nodes: &mut Vec<Node>, lanes: &mut Vec<u32>) -> u32 {
     let me = nodes.len() as u32;
     if items.len() <= LANES {
@@ -384,15 +388,12 @@ impl SurfaceIndex {
     /// Indexes `mesh`. Fails on a mesh without triangles, a triangle indexing past the vertices,
     /// or a non-finite vertex of a triangle.
     pub fn new(mesh: &Mesh) -> Result<Self, String> {
-        let corners = corners(mesh)?;
-        let mut items: Vec<(u32, V3)> = corners
-            .par_iter()
-            .enumerate()
-            .map(|(i, c)| {
-                (
-                    i as u32,
-                    [0, 1, 2].map(|k| (c[0][k] + c[1][k] + c[2][k]) / 3.0),
-                )
+        check(mesh)?;
+        let mut items: Vec<(u32, V3)> = (0..mesh.triangles.len() as u32)
+            .into_par_iter()
+            .map(|i| {
+                let c = corners(mesh, i);
+                (i, [0, 1, 2].map(|k| (c[0][k] + c[1][k] + c[2][k]) / 3.0))
             })
             .collect();
         let n_leaves = items.len().div_ceil(LANES);
@@ -409,13 +410,14 @@ impl SurfaceIndex {
         let mut index = SurfaceIndex {
             nodes,
             leaves: vec![Leaf::EMPTY; n_leaves],
+            leaf_bounds: vec![Aabb::EMPTY; n_leaves],
             leaf_node,
             lanes,
             triangles: mesh.triangles.clone(),
             built_area: 0.0,
             avx2,
         };
-        index.built_area = index.refit(&corners);
+        index.built_area = index.refit(mesh);
         Ok(index)
     }
 
@@ -429,32 +431,30 @@ impl SurfaceIndex {
             *self = SurfaceIndex::new(mesh)?;
             return Ok(());
         }
-        let corners = corners(mesh)?;
-        if self.refit(&corners) > 1.5 * self.built_area {
+        check(mesh)?;
+        if self.refit(mesh) > 1.5 * self.built_area {
             *self = SurfaceIndex::new(mesh)?;
         }
         Ok(())
     }
 
-    /// Fills the leaves and every box from the triangles' `corners`; returns the leaves' summed
-    /// box areas.
-    fn refit(&mut self, corners: &[[V3; 3]]) -> f64 {
-        let boxes: Vec<Aabb> = self
-            .leaves
+    /// Fills the leaves and every box from `mesh` (checked, with the index's triangles); returns
+    /// the leaves' summed box areas.
+    fn refit(&mut self, mesh: &Mesh) -> f64 {
+        self.leaves
             .par_iter_mut()
+            .zip(self.leaf_bounds.par_iter_mut())
             .zip(self.lanes.par_chunks(LANES))
-            .map(|(leaf, tris)| {
-                let mut bounds = Aabb::EMPTY;
+            .for_each(|((leaf, bounds), tris)| {
+                *bounds = Aabb::EMPTY;
                 for (l, &t) in tris.iter().enumerate() {
-                    let c = &corners[t as usize];
+                    let c = corners(mesh, t);
                     leaf.set(l, &TriangleData::new(c[0], c[1], c[2]));
                     c.iter().for_each(|&p| bounds.grow(p));
                 }
-                bounds
-            })
-            .collect();
+            });
         let mut area = 0.0;
-        for (b, &n) in boxes.iter().zip(&self.leaf_node) {
+        for (b, &n) in self.leaf_bounds.iter().zip(&self.leaf_node) {
             self.nodes[n as usize].bounds = *b;
             let e = [0, 1, 2].map(|k| (b.hi[k] - b.lo[k]) as f64);
             area += e[0] * e[1] + e[1] * e[2] + e[2] * e[0];
