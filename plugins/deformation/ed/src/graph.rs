@@ -312,24 +312,20 @@ impl EdGraph {
     /// binding a new node changes (one within its [`Binding::support`]) and leaves the others,
     /// whose k + 1 nearest nodes are the same; the result is [`Self::bind_all`]'s. Returns how
     /// many were bound again. Where the new nodes are many (a quarter of the old ones, or more
-    /// than 64), every point is bound again.
+    /// than 64), or the bindings are not one per point, every point is bound again.
     pub fn rebind_grown(
         &self,
         points: &[Vector3<f64>],
-        bindings: &mut [Binding],
+        bindings: &mut Vec<Binding>,
         first_new: usize,
     ) -> usize {
         let new = &self.nodes[first_new.min(self.nodes.len())..];
-        if new.is_empty() {
+        if new.is_empty() && bindings.len() == points.len() {
             return 0;
         }
         if new.len() > 64 || 4 * new.len() > first_new || bindings.len() != points.len() {
-            let all = self.bind_all(points);
-            let n = all.len();
-            if bindings.len() == n {
-                bindings.copy_from_slice(&all);
-            }
-            return n;
+            *bindings = self.bind_all(points);
+            return points.len();
         }
         points
             .par_iter()
@@ -818,5 +814,9 @@ mod tests {
             pts.len()
         );
         assert_eq!(g.rebind_grown(&pts, &mut bindings, g.len()), 0);
+        // Bindings that are not one per point are all made again.
+        bindings.truncate(5);
+        assert_eq!(g.rebind_grown(&pts, &mut bindings, g.len()), pts.len());
+        assert_eq!(bindings, g.bind_all(&pts));
     }
 }
