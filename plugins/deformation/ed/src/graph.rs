@@ -310,7 +310,9 @@ impl EdGraph {
 
     /// After [`Self::grow`] added the nodes from `first_new` on: binds again the points whose
     /// binding a new node changes (one within its [`Binding::support`]) and leaves the others,
-    /// whose k + 1 nearest nodes are the same; the result is [`Self::bind_all`]'s. Returns how
+    /// whose k + 1 nearest nodes are the same; for points that have not moved since they were
+    /// bound, the result is [`Self::bind_all`]'s (a point that moved keeps its binding unless a
+    /// new node reaches it: the support was measured where it was bound). Returns how
     /// many were bound again. Where the new nodes are many (a quarter of the old ones, or more
     /// than 64), or the bindings are not one per point, every point is bound again.
     pub fn rebind_grown(
