@@ -8,7 +8,7 @@
 //! `u_j = [v - g_j; 1]`. A residual row `a^T (p - q)` of a point therefore contributes
 //! `w_j w_k (R a a^T R^T) (x) (u_j u_k^T)` to block (j, k) of J^T J: a 3x3 times a 4x4 outer product,
 //! assembled without forming J. The pose update is right-multiplied, world_from_camera <-
-//! world_from_camera * exp(xi), xi = (rho, omega), so d p_cam / d xi = [-I, [p]x].
+//! world_from_camera * exp(xi), xi = (rho, omega), so d p_cam / d xi = [-I, \[p\]x].
 
 use crate::assemble::DataAssembly;
 use crate::evaluate::Pass;

@@ -2,7 +2,7 @@
 //! an optional 6-wide pose block, assembled straight into block storage, reduced, and factorised by
 //! faer's sparse Cholesky.
 //!
-//! **Reduction** ([`crate::schur`]). A node that no data term touches (no model point, field sample or correspondence
+//! **Reduction** (`schur`). A node that no data term touches (no model point, field sample or correspondence
 //! is bound to it) has its 9 affine unknowns A coupled only to its own translation and to the
 //! translations of the nodes its regularisation edges point to: E_rot involves A alone, and E_reg
 //! of edge (j, k) is `A_j (g_k - g_j) + g_j + t_j - g_k - t_k`. Those A blocks are eliminated first,

@@ -173,7 +173,7 @@ impl DisparityGrid {
     }
 }
 
-/// The prior table P[Δ] for Δ = 0..=radius, in SAD units, and the radius.
+/// The prior table P\[Δ\] for Δ = 0..=radius, in SAD units, and the radius.
 pub fn prior(p: &ElasParams) -> (Vec<i32>, usize) {
     let radius = ((p.sigma * p.sradius).ceil() as usize).max(2);
     let two_s2 = 2.0 * p.sigma as f64 * p.sigma as f64;
