@@ -152,6 +152,9 @@ enum Command {
         /// The time series' order (0: 2H + 1 for the organ's H frequencies).
         #[arg(long, default_value_t = 0)]
         order: usize,
+        /// FEM: the wall's thickness, mm (the beam elements' bending stiffness EI = EA h^2 / 12).
+        #[arg(long, default_value_t = 8.0)]
+        fem_thickness_mm: f64,
         /// Hold the coefficients fitted on the still period instead of estimating them.
         #[arg(long)]
         fixed_coefficients: bool,
@@ -477,6 +480,7 @@ fn run(command: Command) -> anyhow::Result<()> {
             obs_sigma_mm,
             ts_sigma_mm,
             order,
+            fem_thickness_mm,
             fixed_coefficients,
             free_fit,
             rank_steps,
@@ -496,6 +500,7 @@ fn run(command: Command) -> anyhow::Result<()> {
             let p = obs::EstimatorParams {
                 ts_sigma_mm,
                 order,
+                fem_thickness_mm,
                 estimate_coefficients: !fixed_coefficients,
                 periodic: !free_fit,
                 ..Default::default()

@@ -17,7 +17,8 @@
 //! - [`Method::Ed`]: an ED graph per step on the first view's features (affine nodes, Sumner
 //!   weights, E_rot and E_reg), nothing tying the steps together;
 //! - [`Method::Fem`]: a position per feature per step held together by a finite-element model
-//!   of the wall (bar elements, rest lengths from the first view), nothing tying the steps;
+//!   of the wall (co-rotational Euler-Bernoulli beams between neighbouring points, at rest in
+//!   the first view), nothing tying the steps;
 //! - [`Method::TimeSeries`]: a position per feature per step with E_f.
 //!
 //! [`run_study`] runs them by Monte Carlo (RMSE of position and heading against the truth) and
@@ -44,9 +45,9 @@ pub enum Method {
     Static,
     /// SLAM with an ED graph per step, no temporal prior.
     Ed,
-    /// SLAM with a finite-element model of the wall per step: linear bar (truss) elements
-    /// between neighbouring points and between every other point (bending), rest lengths from
-    /// the first view, no temporal prior.
+    /// SLAM with a finite-element model of the wall per step: a ring of co-rotational
+    /// Euler-Bernoulli beam elements between neighbouring points (axial and bending energy, a
+    /// rotation unknown per point), at rest in the first view, no temporal prior.
     Fem,
     /// SLAM with the time-series prior E_f and the still period E_ini.
     TimeSeries,
@@ -87,9 +88,12 @@ pub struct EstimatorParams {
     pub w_rot: f64,
     /// ED: weight of E_reg (between neighbouring nodes around the wall).
     pub w_reg: f64,
-    /// FEM: stiffness of the bar elements (weight of each element's squared strain times its
-    /// rest length, mm^-1).
+    /// FEM: axial stiffness EA of the beam elements (in the observations' weighting: twice an
+    /// element's axial energy is EA / L (l - L)^2, L its rest length).
     pub fem_stiffness: f64,
+    /// FEM: the wall's thickness h, mm, which sets the bending stiffness of its rectangular
+    /// section, EI = EA h^2 / 12.
+    pub fem_thickness_mm: f64,
     /// Order t of the time series; 0: the organ's 2H + 1 for its H frequencies.
     pub order: usize,
     /// Standard deviation of E_f, mm.
@@ -120,6 +124,7 @@ impl Default for EstimatorParams {
             w_rot: 1.0,
             w_reg: 10.0,
             fem_stiffness: 100.0,
+            fem_thickness_mm: 8.0,
             order: 0,
             ts_sigma_mm: 0.01,
             estimate_coefficients: true,
@@ -150,6 +155,7 @@ impl EstimatorParams {
         for (name, v) in [
             ("ini_sigma", self.ini_sigma),
             ("ts_sigma_mm", self.ts_sigma_mm),
+            ("fem_thickness_mm", self.fem_thickness_mm),
         ] {
             if !(v.is_finite() && v > 0.0) {
                 return Err(format!("`{name}` is {v}: a finite value > 0"));
@@ -240,6 +246,28 @@ fn per_step_features(
         }
     }
     fv
+}
+
+/// The residuals of a co-rotational Euler-Bernoulli beam element from `a` to `b` with nodal
+/// rotations `ta`, `tb` (from the rest state), rest length and chord angle `rest`, and `scale`
+/// (sqrt(EA / L), sqrt(EI / L)): the element's own end rotations are the nodes' less its chord's
+/// turn, and the squares sum to twice its strain energy, EA / L (l - L)^2 + EI / L (4 ta^2 +
+/// 4 ta tb + 4 tb^2) (the frame element's bending stiffness EI / L [4 2; 2 4]).
+fn beam_residual(
+    a: &Vector2<f64>,
+    b: &Vector2<f64>,
+    ta: f64,
+    tb: f64,
+    rest: (f64, f64),
+    scale: (f64, f64),
+    out: &mut [f64],
+) {
+    let d = b - a;
+    let turn = wrap(d.y.atan2(d.x) - rest.1);
+    let (ta, tb) = (wrap(ta - turn), wrap(tb - turn));
+    out[0] = scale.0 * (d.norm() - rest.0);
+    out[1] = scale.1 * (2.0 * ta + tb);
+    out[2] = scale.1 * 3f64.sqrt() * tb;
 }
 
 /// The estimate of a problem built by [`per_step_features`]: the poses and the features.
@@ -486,20 +514,43 @@ pub fn build_with(
         }
         Method::Fem => {
             let fv = per_step_features(&mut prob, &mut x, s, &dr, so);
-            let ks = p.fem_stiffness.sqrt();
+            // The wall as a ring of co-rotational Euler-Bernoulli beam elements between
+            // neighbouring points: each point has a rotation unknown per step (after the
+            // features), started at the mean turn of its two elements' chords.
+            let tv0 = x.len();
+            let tv = move |n: usize, j: usize| tv0 + n * m + j;
+            let chord = |f: &[Vector2<f64>], j: usize| f[(j + 1) % m] - f[j];
+            let rest: Vec<(f64, f64)> = (0..m)
+                .map(|j| {
+                    let d = chord(&first, j);
+                    (d.norm().max(1e-9), d.y.atan2(d.x))
+                })
+                .collect();
             for n in 0..nsteps {
-                // Strain energy of a bar of rest length L: (k / 2) L ((l - L) / L)^2.
+                let f: Vec<Vector2<f64>> = (0..m)
+                    .map(|j| Vector2::new(x[fv(n, j)], x[fv(n, j) + 1]))
+                    .collect();
+                let turn = |j: usize| {
+                    let d = chord(&f, j);
+                    wrap(d.y.atan2(d.x) - rest[j].1)
+                };
                 for j in 0..m {
-                    for step in [1, 2] {
-                        let k = (j + step) % m;
-                        let rest = (first[k] - first[j]).norm().max(1e-9);
-                        let scale = ks / rest.sqrt();
-                        let (a, b) = (fv(n, j), fv(n, k));
-                        prob.add(vec![a, a + 1, b, b + 1], 1, move |v, out| {
-                            let l = Vector2::new(v[2] - v[0], v[3] - v[1]).norm();
-                            out[0] = scale * (l - rest);
-                        });
-                    }
+                    let (a, b) = (turn((j + m - 1) % m), turn(j));
+                    x.push(wrap(a + 0.5 * wrap(b - a)));
+                }
+            }
+            let ea = p.fem_stiffness;
+            let ei = ea * p.fem_thickness_mm * p.fem_thickness_mm / 12.0;
+            for n in 0..nsteps {
+                for (j, &(len, angle)) in rest.iter().enumerate() {
+                    let k = (j + 1) % m;
+                    let (sa, sb) = ((ea / len).sqrt(), (ei / len).sqrt());
+                    let (a, b) = (fv(n, j), fv(n, k));
+                    let vars = vec![a, a + 1, b, b + 1, tv(n, j), tv(n, k)];
+                    prob.add(vars, 3, move |v, out| {
+                        let (a, b) = (Vector2::new(v[0], v[1]), Vector2::new(v[2], v[3]));
+                        beam_residual(&a, &b, v[4], v[5], (len, angle), (sa, sb), out);
+                    });
                 }
             }
             prob.n = x.len();
@@ -584,4 +635,39 @@ pub fn estimate(method: Method, s: &Scene, p: &EstimatorParams) -> Result<Estima
     let mut e = read(&x);
     e.info = info;
     Ok(e)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn energy2(a: Vector2<f64>, b: Vector2<f64>, ta: f64, tb: f64, rest: (f64, f64)) -> f64 {
+        let (ea, ei) = (100.0, 50.0);
+        let scale = ((ea / rest.0).sqrt(), (ei / rest.0).sqrt());
+        let mut out = [0.0; 3];
+        beam_residual(&a, &b, ta, tb, rest, scale, &mut out);
+        out.iter().map(|r| r * r).sum()
+    }
+
+    #[test]
+    fn a_beam_element_stores_the_textbook_energies_and_none_under_a_rigid_motion() {
+        let (a, b) = (Vector2::new(1.0, 2.0), Vector2::new(11.0, 2.0));
+        let rest = (10.0, 0.0);
+        assert_eq!(energy2(a, b, 0.0, 0.0, rest), 0.0);
+        // A rigid motion, the nodes turning with the element: no energy.
+        let (r, t) = (scene::rot(0.7), Vector2::new(-3.0, 5.0));
+        let e = energy2(r * a + t, r * b + t, 0.7, 0.7, rest);
+        assert!(e < 1e-20, "{e}");
+        // A stretch by 0.5: twice the energy is EA / L 0.5^2.
+        let e = energy2(a, b + Vector2::new(0.5, 0.0), 0.0, 0.0, rest);
+        assert!((e - 100.0 / 10.0 * 0.25).abs() < 1e-12, "{e}");
+        // Bent into an arc of curvature k (its chord kept): the ends turn by -kL/2 and kL/2, and
+        // twice the energy is EI k^2 L, the integral of EI k^2 along the element.
+        let k = 0.01;
+        let e = energy2(a, b, -k * 5.0, k * 5.0, rest);
+        assert!((e - 50.0 * k * k * 10.0).abs() < 1e-12, "{e}");
+        // A cantilever's end rotation without a turn of the chord is the stiffer one: 4 EI / L.
+        let e = energy2(a, b, 0.0, 0.01, rest);
+        assert!((e - 4.0 * 50.0 / 10.0 * 1e-4).abs() < 1e-12, "{e}");
+    }
 }

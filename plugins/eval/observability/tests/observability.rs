@@ -225,6 +225,12 @@ fn bad_parameters_are_named() {
     };
     let err = estimate(Method::Ed, &s, &p).unwrap_err();
     assert!(err.contains("`ed_nodes` is 40"), "{err}");
+    let p = EstimatorParams {
+        fem_thickness_mm: 0.0,
+        ..Default::default()
+    };
+    let err = estimate(Method::Fem, &s, &p).unwrap_err();
+    assert!(err.contains("`fem_thickness_mm` is 0"), "{err}");
     let err = study_organ(&base, &EstimatorParams::default(), 0, 12).unwrap_err();
     assert!(err.contains("`runs` is 0"), "{err}");
     let err = Organ::parse("spleen").unwrap_err();
