@@ -95,9 +95,6 @@ pub struct Binding {
     pub weights: [f64; MAX_K],
     /// Number of nodes used (0 when the graph is empty).
     pub len: u8,
-    /// How near a node added later must come to change this binding (mm): the distance of the
-    /// (k + 1)-th nearest node, rounded up; infinite where the graph had no k + 1 nodes.
-    pub support: f32,
 }
 
 impl Binding {
@@ -106,7 +103,6 @@ impl Binding {
         nodes: [0; MAX_K],
         weights: [0.0; MAX_K],
         len: 0,
-        support: f32::INFINITY,
     };
 
     /// (node, weight) pairs.
@@ -280,17 +276,13 @@ impl EdGraph {
         if buf.len() < k || k == 0 {
             return Binding::EMPTY;
         }
-        let (d_max, support) = if buf.len() > k {
-            let d = buf[k].0.sqrt();
-            (d, (d as f32).next_up())
+        let d_max = if buf.len() > k {
+            buf[k].0.sqrt()
         } else {
             // Fewer than k + 1 nodes in all: the farthest one bounds the support.
-            (buf[k - 1].0.sqrt() * 1.5 + 1e-9, f32::INFINITY)
+            buf[k - 1].0.sqrt() * 1.5 + 1e-9
         };
-        let mut b = Binding {
-            support,
-            ..Binding::EMPTY
-        };
+        let mut b = Binding::EMPTY;
         let mut sum = 0.0;
         for (i, &(d2, j)) in buf.iter().take(k).enumerate() {
             let w = (1.0 - d2.sqrt() / d_max).max(0.0).powi(2);
@@ -306,44 +298,6 @@ impl EdGraph {
             b.weights[..k].iter_mut().for_each(|w| *w = 1.0 / k as f64);
         }
         b
-    }
-
-    /// After [`Self::grow`] added the nodes from `first_new` on: binds again the points whose
-    /// binding a new node changes (one within its [`Binding::support`]) and leaves the others,
-    /// whose k + 1 nearest nodes are the same; for points that have not moved since they were
-    /// bound, the result is [`Self::bind_all`]'s (a point that moved keeps its binding unless a
-    /// new node reaches it: the support was measured where it was bound). Returns how
-    /// many were bound again. Where the new nodes are many (a quarter of the old ones, or more
-    /// than 64), or the bindings are not one per point, every point is bound again.
-    pub fn rebind_grown(
-        &self,
-        points: &[Vector3<f64>],
-        bindings: &mut Vec<Binding>,
-        first_new: usize,
-    ) -> usize {
-        let new = &self.nodes[first_new.min(self.nodes.len())..];
-        if new.is_empty() && bindings.len() == points.len() {
-            return 0;
-        }
-        if new.len() > 64 || 4 * new.len() > first_new || bindings.len() != points.len() {
-            *bindings = self.bind_all(points);
-            return points.len();
-        }
-        points
-            .par_iter()
-            .zip(bindings.par_iter_mut())
-            .map_init(
-                || Vec::with_capacity(MAX_K + 1),
-                |buf, (v, b)| {
-                    let r = b.support as f64;
-                    let touched = new.iter().any(|g| (g - v).norm_squared() <= r * r);
-                    if touched {
-                        *b = self.bind_with(v, buf);
-                    }
-                    touched as usize
-                },
-            )
-            .sum()
     }
 
     /// Binds many points (in parallel).
@@ -790,35 +744,5 @@ mod tests {
         // curvature would explain (the field is linear, so interpolation reproduces it closely).
         let after = g.warp_point(&probe, &g.bind(&probe));
         assert!((after - before).norm() < 0.3, "{before:?} -> {after:?}");
-    }
-
-    #[test]
-    fn binding_again_after_growth_gives_what_binding_all_gives() {
-        // A sheet's points bound to its graph; the graph grows along one edge; only the points
-        // the new nodes reach are bound again, and all bindings equal a fresh `bind_all`.
-        let pts: Vec<Vector3<f64>> = (0..60)
-            .flat_map(|i| (0..30).map(move |j| Vector3::new(i as f64 * 0.5, j as f64 * 0.5, 0.0)))
-            .collect();
-        let params = GraphParams {
-            spacing: 3.0,
-            ..GraphParams::default()
-        };
-        let (old, far): (Vec<_>, Vec<_>) = pts.iter().partition(|p| p.x < 26.0);
-        let mut g = EdGraph::from_points(&old, params).unwrap();
-        let mut bindings = g.bind_all(&pts);
-        let first = g.len();
-        assert!(g.grow(&far) > 0);
-        let again = g.rebind_grown(&pts, &mut bindings, first);
-        assert_eq!(bindings, g.bind_all(&pts));
-        assert!(
-            again > 0 && again < pts.len() / 2,
-            "{again} of {}",
-            pts.len()
-        );
-        assert_eq!(g.rebind_grown(&pts, &mut bindings, g.len()), 0);
-        // Bindings that are not one per point are all made again.
-        bindings.truncate(5);
-        assert_eq!(g.rebind_grown(&pts, &mut bindings, g.len()), pts.len());
-        assert_eq!(bindings, g.bind_all(&pts));
     }
 }

@@ -659,13 +659,10 @@ impl SurfelNode {
             if removed > 0 {
                 m.retain(&keep);
             }
-            // 5. Graph growth, then the bindings the new nodes change (those within a surfel's
-            // support: its k + 1 nearest nodes are then no longer the same). The others keep
-            // theirs, as every surfel does between growths.
+            // 5. Graph growth, then every binding again (new nodes change the neighbourhoods).
             if graph.len() < self.p.max_nodes {
-                let first = graph.len();
                 if graph.grow(&grown) > 0 {
-                    graph.rebind_grown(&m.canon, &mut m.bindings, first);
+                    m.bindings = graph.bind_all(&m.canon);
                 }
             } else if !grown.is_empty() {
                 tracing::warn!(
@@ -882,7 +879,6 @@ mod tests {
             nodes: [0; misslam_deformation_ed::graph::MAX_K],
             weights: [0.0; misslam_deformation_ed::graph::MAX_K],
             len: 1,
-            support: f32::INFINITY,
         };
         b.weights[0] = 1.0;
         let (a_inv, a_t) = local_inverses(&b, &nm);

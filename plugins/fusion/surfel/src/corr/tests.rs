@@ -21,7 +21,6 @@ fn binding(node: u32) -> Binding {
         nodes: [0; misslam_deformation_ed::graph::MAX_K],
         weights: [0.0; misslam_deformation_ed::graph::MAX_K],
         len: 1,
-        support: f32::INFINITY,
     };
     b.nodes[0] = node;
     b.weights[0] = 1.0;
