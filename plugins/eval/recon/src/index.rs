@@ -530,6 +530,28 @@ impl SurfaceIndex {
 mod tests {
     use super::*;
 
+    /// Uniform values in [0, 1) from a xorshift generator.
+    fn uniform(mut st: u64) -> impl FnMut() -> f32 {
+        move || {
+            st ^= st << 13;
+            st ^= st >> 7;
+            st ^= st << 17;
+            (st >> 40) as f32 / (1u64 << 24) as f32
+        }
+    }
+
+    /// The distance from `p` to the nearest triangle of `gt`, over every triangle.
+    fn brute(gt: &Mesh, p: V3) -> f32 {
+        gt.triangles
+            .iter()
+            .map(|t| {
+                let [a, b, c] = t.map(|i| gt.vertices[i as usize]);
+                point_triangle_dist2(p, a, b, c)
+            })
+            .fold(f32::INFINITY, f32::min)
+            .sqrt()
+    }
+
     /// Ericson's region-by-region closest point (Real-Time Collision Detection 5.1.5), an
     /// independent reference for the kernel.
     fn ericson_dist2(p: V3, a: V3, b: V3, c: V3) -> f32 {
@@ -598,15 +620,9 @@ mod tests {
 
     #[test]
     fn the_kernel_agrees_with_ericsons_regions() {
-        let mut st = 0x2545f4914f6cdd1du64;
-        let mut rnd = || {
-            st ^= st << 13;
-            st ^= st >> 7;
-            st ^= st << 17;
-            (st >> 40) as f32 / (1u64 << 24) as f32 * 2.0 - 1.0
-        };
+        let mut rnd = uniform(0x2545f4914f6cdd1d);
         for _ in 0..20_000 {
-            let mut v = || [rnd() * 3.0, rnd() * 3.0, rnd() * 3.0];
+            let mut v = || [0, 1, 2].map(|_| (rnd() * 2.0 - 1.0) * 3.0);
             let (a, b, c, p) = (v(), v(), v(), v());
             let (k, e) = (point_triangle_dist2(p, a, b, c), ericson_dist2(p, a, b, c));
             assert!(
@@ -621,13 +637,7 @@ mod tests {
         // A crumpled sheet (random heights on a 25x25 grid, uneven spacing) against brute force,
         // for points on it, near it, and far outside its box, with every leaf size (the last
         // leaf short or full).
-        let mut st = 0x9e3779b97f4a7c15u64;
-        let mut rnd = || {
-            st ^= st << 13;
-            st ^= st >> 7;
-            st ^= st << 17;
-            (st >> 40) as f32 / (1u64 << 24) as f32
-        };
+        let mut rnd = uniform(0x9e3779b97f4a7c15);
         for n in [2, 3, 4, 25] {
             let gt = crate::grid_mesh(n, |i, j| {
                 let (x, y) = (i as f32 * 2.0 + rnd(), j as f32 * 2.0 + rnd());
@@ -641,16 +651,7 @@ mod tests {
                     24.0 + spread * (rnd() - 0.5),
                     103.0 + spread * (rnd() - 0.5),
                 ];
-                let brute = gt
-                    .triangles
-                    .iter()
-                    .map(|t| {
-                        let [a, b, c] = t.map(|i| gt.vertices[i as usize]);
-                        point_triangle_dist2(p, a, b, c)
-                    })
-                    .fold(f32::INFINITY, f32::min)
-                    .sqrt();
-                assert_eq!(index.distance(p), brute, "{n}x{n}, {p:?}");
+                assert_eq!(index.distance(p), brute(&gt, p), "{n}x{n}, {p:?}");
                 // Both paths of the leaf kernel give the same bits.
                 let leaf = &index.leaves[0];
                 assert_eq!(
@@ -666,16 +667,6 @@ mod tests {
         // The same triangles moved a little (refit), moved a lot (the refit tree too loose:
         // built again), other triangles (built again), and a bad mesh (refused, the index kept).
         let sheet = |f: &dyn Fn(f32, f32) -> V3| crate::grid_mesh(20, |i, j| f(i as f32, j as f32));
-        let brute = |gt: &Mesh, p: V3| {
-            gt.triangles
-                .iter()
-                .map(|t| {
-                    let [a, b, c] = t.map(|i| gt.vertices[i as usize]);
-                    point_triangle_dist2(p, a, b, c)
-                })
-                .fold(f32::INFINITY, f32::min)
-                .sqrt()
-        };
         let gt = sheet(&|x, y| [x, y, 50.0 + (x * 0.3).sin()]);
         let mut index = SurfaceIndex::new(&gt).unwrap();
         let bumped = sheet(&|x, y| [x, y, 50.0 + (x * 0.3).sin() + 0.4 * (y * 0.5).cos()]);
