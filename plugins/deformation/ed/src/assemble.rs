@@ -504,6 +504,7 @@ impl DataAssembly {
         pose_on: bool,
         params: &SolverParams,
         pass: &Pass,
+        grad_only: bool,
     ) {
         let w = &params.weights;
         let cfw = pose.inverse();
@@ -603,6 +604,26 @@ impl DataAssembly {
         let list = |b: usize| &items[start[b] as usize..start[b + 1] as usize];
         let nodes = graph.nodes();
         let block_nodes = &self.block_nodes;
+        let nb = sys.blocks_solved();
+        let diag = &self.diag;
+        let node_list = |s: usize| (list(diag[s].0 as usize), &nodes[diag[s].1 as usize]);
+        if grad_only {
+            // The gradient alone (the blocks and the pose block and columns are not written).
+            sys.grad[..12 * nb]
+                .par_chunks_mut(12)
+                .enumerate()
+                .for_each(|(s, g)| {
+                    let (its, gn) = node_list(s);
+                    node_sum(its, &src, gn, g, None);
+                });
+            if pose_on {
+                let off = 12 * nb;
+                for i in 0..6 {
+                    sys.grad[off + i] += pose_acc[36 + i];
+                }
+            }
+            return;
+        }
         sys.blocks
             .par_iter_mut()
             .enumerate()
@@ -614,10 +635,7 @@ impl DataAssembly {
                     block_sum(its, &src, &nodes[r as usize], &nodes[c as usize], blk);
                 }
             });
-        let nb = sys.blocks_solved();
-        let diag = &self.diag;
         let grads = sys.grad[..12 * nb].par_chunks_mut(12).enumerate();
-        let node_list = |s: usize| (list(diag[s].0 as usize), &nodes[diag[s].1 as usize]);
         if pose_on {
             grads
                 .zip(sys.pose_cross.par_iter_mut())

@@ -75,6 +75,8 @@ impl DecoupledInfo {
             cost_after: a.cost_after,
             costs: a.costs.clone(),
             rejected_steps: a.rejected_steps + b.rejected_steps,
+            factorisations: a.factorisations + b.factorisations,
+            reused_factorisations: a.reused_factorisations + b.reused_factorisations,
             solved_nodes: a.solved_nodes + b.solved_nodes,
             data_terms: a.data_terms,
             symbolic_builds: a.symbolic_builds + b.symbolic_builds,

@@ -307,6 +307,12 @@ pub struct SolverParams {
     pub robust_scale_mm: f64,
     /// Jacobian of the distance-field row (template path): `normal` or `gradient`.
     pub field_jacobian: FieldJacobian,
+    /// Each numeric factorisation also serves the next this many iterations: they take their
+    /// step from it (the Hessian and damping it was made with, the gradient and association of
+    /// their own state: a modified Gauss-Newton step) and assemble only the gradient. A step the
+    /// cost rejects is taken again from a fresh factorisation, so the cost still falls at every
+    /// accepted iteration. 0: a factorisation every iteration.
+    pub reuse_factorisation: usize,
     /// Term weights.
     pub weights: Weights,
 }
@@ -325,6 +331,7 @@ impl Default for SolverParams {
             robust: Robust::None,
             robust_scale_mm: 2.0,
             field_jacobian: FieldJacobian::Normal,
+            reuse_factorisation: 0,
             weights: Weights::default(),
         }
     }

@@ -192,6 +192,31 @@ impl Elimination {
         true
     }
 
+    /// The right-hand side part of [`Self::eliminate`] alone, with the factors of the last
+    /// elimination and a new gradient: `w = L^-1 g_A`, `rhs += W^T w` (the reduced `rhs` must
+    /// hold `-g_K` already). [`Self::back_substitute`] then uses this `w`.
+    pub(crate) fn reduce_rhs(&mut self, grad: &[f64], layout: &Layout, rhs: &mut [f64]) {
+        for (e, &s) in self.elim.iter().enumerate() {
+            let s = s as usize;
+            let (t0, t1) = (self.t_start[e], self.t_start[e + 1]);
+            let width = 3 * (t1 - t0);
+            let wm = &self.w_mat[self.w_start[e]..self.w_start[e] + 9 * width];
+            let wv = &mut self.w_vec[e];
+            for r in 0..9 {
+                wv[r] = grad[12 * s + AFF[r]];
+            }
+            forward9(&self.chol[e], wv, 1);
+            for (qb, &sb) in self.t_slots[t0..t1].iter().enumerate() {
+                let cb = layout.t_offset(sb);
+                for c in 0..3 {
+                    rhs[cb + c] += (0..9)
+                        .map(|k| wm[k * width + 3 * qb + c] * wv[k])
+                        .sum::<f64>();
+                }
+            }
+        }
+    }
+
     /// Writes each eliminated node's affine step `dA = L^-T (-w - W dK)` into `dx` (12-layout),
     /// from the reduced solution `sol`.
     pub(crate) fn back_substitute(&self, layout: &Layout, sol: &[f64], dx: &mut [f64]) {

@@ -30,8 +30,14 @@ pub struct Info {
     pub cost_after: f64,
     /// Cost after each accepted iteration.
     pub costs: Vec<f64>,
-    /// Levenberg-Marquardt steps tried and rejected (each a factorisation).
+    /// Levenberg-Marquardt steps tried and rejected (each a factorisation, or a step from a kept
+    /// one).
     pub rejected_steps: usize,
+    /// Numeric factorisations computed.
+    pub factorisations: usize,
+    /// Steps taken with the factorisation of an earlier iteration
+    /// ([`SolverParams::reuse_factorisation`]).
+    pub reused_factorisations: usize,
     /// Nodes solved.
     pub solved_nodes: usize,
     /// Data residuals associated at the end (projective) plus field and correspondence terms.
@@ -405,6 +411,7 @@ impl Solver {
         set: &SolveSet,
         params: &SolverParams,
         reference: bool,
+        grad_only: bool,
     ) {
         let w = &params.weights;
         let sys = &mut self.system;
@@ -424,7 +431,9 @@ impl Solver {
                 let g: f64 = (0..6).map(|q| jac[q][a] * r[q]).sum();
                 sys.grad[12 * s as usize + a] += w.rot * g;
             }
-            sys.add_diag(s, &h);
+            if !grad_only {
+                sys.add_diag(s, &h);
+            }
         }
         // E_reg: r = A_j (g_k - g_j) + g_j + t_j - g_k - t_k.
         const E4: [f64; 4] = [0.0, 0.0, 0.0, 1.0];
@@ -434,7 +443,9 @@ impl Solver {
             let u = [d.x, d.y, d.z, 1.0];
             let (sj, sk) = (sys.slot[j as usize], sys.slot[k as usize]);
             if sj != u32::MAX {
-                sys.add_kron_identity(sj, sj, &u, &u, w.reg);
+                if !grad_only {
+                    sys.add_kron_identity(sj, sj, &u, &u, w.reg);
+                }
                 for m in 0..3 {
                     for c in 0..4 {
                         sys.grad[12 * sj as usize + m * 4 + c] += w.reg * r[m] * u[c];
@@ -442,12 +453,14 @@ impl Solver {
                 }
             }
             if sk != u32::MAX {
-                sys.add_kron_identity(sk, sk, &E4, &E4, w.reg);
+                if !grad_only {
+                    sys.add_kron_identity(sk, sk, &E4, &E4, w.reg);
+                }
                 for m in 0..3 {
                     sys.grad[12 * sk as usize + m * 4 + 3] -= w.reg * r[m];
                 }
             }
-            if sj != u32::MAX && sk != u32::MAX {
+            if sj != u32::MAX && sk != u32::MAX && !grad_only {
                 sys.add_kron_identity(sj, sk, &u, &E4, -w.reg);
             }
         }
@@ -466,12 +479,15 @@ impl Solver {
                     h[q * 12 + q] = w.motion;
                     sys.grad[12 * s as usize + q] += w.motion * r[a];
                 }
-                sys.add_diag(s, &h);
+                if !grad_only {
+                    sys.add_diag(s, &h);
+                }
             }
         }
         if set.data && !reference {
-            self.data
-                .assemble(sys, graph, problem, pose, set.pose, params, &self.cur);
+            self.data.assemble(
+                sys, graph, problem, pose, set.pose, params, &self.cur, grad_only,
+            );
         }
         if set.data && reference {
             let cfw = pose.inverse();
@@ -565,8 +581,10 @@ impl Solver {
             let rt = pose.translation.vector - problem.pose_prior.translation.vector;
             let rt_cam = pose.rotation.inverse() * rt;
             for i in 0..3 {
-                sys.pose_block[i * 6 + i] += w.pose_trans;
-                sys.pose_block[(3 + i) * 6 + 3 + i] += w.pose_rot;
+                if !grad_only {
+                    sys.pose_block[i * 6 + i] += w.pose_trans;
+                    sys.pose_block[(3 + i) * 6 + 3 + i] += w.pose_rot;
+                }
                 sys.grad[off + i] += w.pose_trans * rt_cam[i];
                 sys.grad[off + 3 + i] += w.pose_rot * rr[i];
             }
@@ -619,7 +637,7 @@ impl Solver {
             self.data.build(&self.system, problem);
         }
         let cost = self.start(graph, problem, pose, set, params);
-        self.assemble(graph, problem, pose, set, params, reference);
+        self.assemble(graph, problem, pose, set, params, reference, false);
         Ok((
             self.system.to_dense(),
             self.system.grad.clone(),
@@ -727,11 +745,15 @@ impl Solver {
             Method::GaussNewton => 0.0,
             Method::LevenbergMarquardt => params.initial_lambda,
         };
+        let mut reuses_left = 0;
         for _ in 0..params.max_iterations {
             info.iterations += 1;
             self.system.prepare(graph.len(), &key)?;
+            // With the factorisation kept from the iteration before, the first attempt needs the
+            // gradient only (the blocks are assembled if that step is rejected).
+            let mut grad_only = reuses_left > 0 && self.system.is_factored();
             let tb = Instant::now();
-            self.assemble(graph, problem, pose, set, params, false);
+            self.assemble(graph, problem, pose, set, params, false, grad_only);
             info.ms_assemble += tb.elapsed().as_secs_f64() * 1e3;
             let pose0 = *pose;
             self.saved.clear();
@@ -740,9 +762,27 @@ impl Solver {
             let mut accepted = false;
             let mut converged = false;
             let mut step_norm = 0.0f64;
-            for _attempt in 0..10 {
+            for attempt in 0..10 {
+                // A later iteration first tries the step from the last factorisation (its
+                // Hessian and damping, this iteration's gradient); rejected, it factorises.
+                let reuse = attempt == 0 && grad_only;
+                if attempt > 0 && grad_only {
+                    grad_only = false;
+                    self.system.prepare(graph.len(), &key)?;
+                    let tb = Instant::now();
+                    self.assemble(graph, problem, pose, set, params, false, false);
+                    info.ms_assemble += tb.elapsed().as_secs_f64() * 1e3;
+                }
                 let tf = Instant::now();
-                let ok = self.system.solve(lambda, 1e-6, &mut self.dx)?;
+                let ok = if reuse {
+                    info.reused_factorisations += 1;
+                    reuses_left -= 1;
+                    self.system.resolve(&mut self.dx)?
+                } else {
+                    info.factorisations += 1;
+                    reuses_left = params.reuse_factorisation;
+                    self.system.solve(lambda, 1e-6, &mut self.dx)?
+                };
                 info.ms_factor += tf.elapsed().as_secs_f64() * 1e3;
                 if ok {
                     for (idx, &j) in set.free.iter().enumerate() {
@@ -790,7 +830,7 @@ impl Solver {
                     // the minimum is reached, and more damping only shortens the step (each try
                     // costs a factorisation). Seen where the Jacobian leaves out part of the
                     // cost's variation (`FieldJacobian::Normal`).
-                    if new_cost - cost <= params.min_relative_decrease * cost.max(1e-30) {
+                    if !reuse && new_cost - cost <= params.min_relative_decrease * cost.max(1e-30) {
                         converged = true;
                     }
                 }
@@ -802,6 +842,10 @@ impl Solver {
                 *pose = pose0;
                 if converged {
                     break;
+                }
+                if reuse {
+                    // The kept Hessian's step failed: the fresh one is the first real attempt.
+                    continue;
                 }
                 if params.method == Method::GaussNewton {
                     lambda = 1e-6;

@@ -21,7 +21,8 @@
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::sparse::linalg::cholesky::{
-    factorize_symbolic_cholesky, CholeskySymbolicParams, SymbolicCholesky, SymmetricOrdering,
+    factorize_symbolic_cholesky, CholeskySymbolicParams, LltRef, SymbolicCholesky,
+    SymmetricOrdering,
 };
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
 use faer::{Par, Side};
@@ -80,6 +81,9 @@ pub struct BlockSystem {
     scratch: MemBuffer,
     /// How many symbolic factorisations were computed (the reuse is tested through this).
     pub symbolic_builds: usize,
+    /// Whether `l_values` and the elimination hold a numeric factorisation of the current
+    /// pattern (cleared when the pattern changes or a factorisation fails).
+    factored: bool,
 }
 
 impl Default for BlockSystem {
@@ -107,6 +111,7 @@ impl Default for BlockSystem {
             l_values: Vec::new(),
             scratch: MemBuffer::new(faer::dyn_stack::StackReq::EMPTY),
             symbolic_builds: 0,
+            factored: false,
         }
     }
 }
@@ -131,6 +136,7 @@ impl BlockSystem {
     /// Sets the pattern (reusing everything when it equals the previous one) and zeroes the system.
     pub fn prepare(&mut self, n_nodes: usize, key: &PatternKey) -> Result<(), String> {
         if *key != self.key || self.symbolic.is_none() || self.slot.len() != n_nodes {
+            self.factored = false;
             self.build_pattern(n_nodes, key.clone())?;
         }
         self.blocks.iter_mut().for_each(|b| b.fill(0.0));
@@ -518,6 +524,7 @@ impl BlockSystem {
         if n == 0 {
             return Ok(true);
         }
+        self.factored = false;
         let damp = |d: f64| d + lambda * (d.abs() + ridge) + 1e-12 * ridge;
         let nf = self.nb;
         let nk = self.koff[nf];
@@ -617,6 +624,81 @@ impl BlockSystem {
             Par::Seq,
             MemStack::new(&mut self.scratch),
         );
+        self.factored = true;
+        Ok(self.expand(dx))
+    }
+
+    /// Whether [`Self::resolve`] can run: the last [`Self::solve`] factorised the current pattern.
+    pub fn is_factored(&self) -> bool {
+        self.factored
+    }
+
+    /// Solves with the matrix of the last successful [`Self::solve`] (its damping included) and
+    /// the gradient now in `grad`: the step of a Gauss-Newton iteration whose Hessian is kept from
+    /// the one before (no factorisation; the assembled blocks are not read). False when there is
+    /// no factorisation of the current pattern, or the step is not finite.
+    pub fn resolve(&mut self, dx: &mut Vec<f64>) -> Result<bool, String> {
+        let n = self.dim();
+        dx.clear();
+        dx.resize(n, 0.0);
+        if n == 0 {
+            return Ok(true);
+        }
+        if !self.factored {
+            return Ok(false);
+        }
+        let nf = self.nb;
+        let nk = self.koff[nf];
+        for bj in 0..nf {
+            let kj: &[usize] = if self.elim_slot[bj] {
+                &KEEP_T
+            } else {
+                &KEEP_FULL
+            };
+            let c0 = self.koff[bj];
+            for (kr, &or) in kj.iter().enumerate() {
+                self.rhs[c0 + kr] = -self.grad[12 * bj + or];
+            }
+        }
+        if self.key.pose {
+            for pc in 0..6 {
+                self.rhs[nk + pc] = -self.grad[12 * nf + pc];
+            }
+        }
+        let layout = Layout {
+            koff: &self.koff,
+            elim_slot: &self.elim_slot,
+        };
+        self.elimination
+            .reduce_rhs(&self.grad, &layout, &mut self.rhs);
+        let symbolic = self
+            .symbolic
+            .as_ref()
+            .ok_or("the system was not prepared")?;
+        let nr = self.rhs.len();
+        let llt = LltRef::new(symbolic, &self.l_values);
+        let rhs = faer::MatMut::from_column_major_slice_mut(self.rhs.as_mut_slice(), nr, 1);
+        llt.solve_in_place_with_conj(
+            faer::Conj::No,
+            rhs,
+            Par::Seq,
+            MemStack::new(&mut self.scratch),
+        );
+        Ok(self.expand(dx))
+    }
+
+    /// The reduced solution in `rhs` back to the 12-layout `dx`: kept unknowns directly,
+    /// eliminated ones by back-substitution. False when a step is not finite.
+    fn expand(&self, dx: &mut [f64]) -> bool {
+        let nf = self.nb;
+        let nk = self.koff[nf];
+        let kept = |e: bool| -> &'static [usize] {
+            if e {
+                &KEEP_T
+            } else {
+                &KEEP_FULL
+            }
+        };
         // Back to the 12-layout: kept unknowns directly, eliminated ones by back-substitution.
         for s in 0..nf {
             for (kr, &or) in kept(self.elim_slot[s]).iter().enumerate() {
@@ -631,7 +713,7 @@ impl BlockSystem {
             elim_slot: &self.elim_slot,
         };
         self.elimination.back_substitute(&layout, &self.rhs, dx);
-        Ok(dx.iter().all(|x| x.is_finite()))
+        dx.iter().all(|x| x.is_finite())
     }
 }
 
@@ -789,6 +871,68 @@ mod tests {
                     .zip(&want)
                     .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
                 assert!(err <= 1e-9 * scale.max(1.0), "without elimination: {err:e}");
+            }
+        }
+    }
+
+    #[test]
+    fn a_kept_factorisation_solves_a_new_gradient_with_the_old_matrix() {
+        let mut rng = Rng(0x2545_f491_4f6c_dd1d);
+        for pose in [false, true] {
+            for eliminate in [false, true] {
+                let mut sys = random_system(pose, eliminate, &mut rng);
+                let mut dx = Vec::new();
+                // Nothing factorised yet: refused, not a stale answer.
+                assert!(!sys.is_factored());
+                assert!(!sys.resolve(&mut dx).unwrap());
+                let lambda = 0.05;
+                let old = dense_solve(&sys, lambda, 1e-6).unwrap();
+                assert!(sys.solve(lambda, 1e-6, &mut dx).unwrap());
+                assert!(sys.is_factored());
+                // The same gradient again: the same step.
+                let mut again = Vec::new();
+                assert!(sys.resolve(&mut again).unwrap());
+                let dev = again
+                    .iter()
+                    .zip(&dx)
+                    .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+                assert!(dev <= 1e-12 * old.iter().fold(1.0f64, |m, x| m.max(x.abs())));
+                // A new gradient with the blocks zeroed (what a gradient-only assembly leaves):
+                // the old damped matrix's solution for it.
+                let h_old = sys.to_dense();
+                let g: Vec<f64> = (0..sys.dim()).map(|_| rng.next()).collect();
+                sys.blocks.iter_mut().for_each(|b| b.fill(0.0));
+                sys.pose_cross.iter_mut().for_each(|b| b.fill(0.0));
+                sys.pose_block.fill(0.0);
+                sys.grad.copy_from_slice(&g);
+                let n = sys.dim();
+                let mut h = DMatrix::from_row_slice(n, n, &h_old);
+                for i in 0..n {
+                    let d = h[(i, i)];
+                    h[(i, i)] = d + lambda * (d.abs() + 1e-6) + 1e-12 * 1e-6;
+                }
+                let want = h
+                    .cholesky()
+                    .unwrap()
+                    .solve(&(-DVector::from_column_slice(&g)));
+                assert!(sys.resolve(&mut dx).unwrap());
+                let scale = want.iter().fold(1.0f64, |m, x| m.max(x.abs()));
+                let err = dx
+                    .iter()
+                    .zip(want.iter())
+                    .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+                assert!(
+                    err <= 1e-9 * scale,
+                    "pose {pose}, eliminate {eliminate}: max deviation {err:e} (scale {scale:e})"
+                );
+                // A new pattern drops the factorisation.
+                let key = PatternKey {
+                    pose: !sys.key.pose,
+                    ..sys.key.clone()
+                };
+                sys.prepare(sys.slot.len(), &key).unwrap();
+                assert!(!sys.is_factored());
+                assert!(!sys.resolve(&mut dx).unwrap());
             }
         }
     }

@@ -15,6 +15,16 @@ fn recover(
     decoupled: bool,
     corr_step: usize,
 ) -> ((f64, f64), Info, usize) {
+    recover_with(truth, decoupled, corr_step, 0)
+}
+
+/// [`recover`] with `reuse_factorisation` set.
+fn recover_with(
+    truth: impl Fn(&Vector3<f64>) -> Vector3<f64>,
+    decoupled: bool,
+    corr_step: usize,
+    reuse_factorisation: usize,
+) -> ((f64, f64), Info, usize) {
     let Sheet {
         points,
         tris,
@@ -44,6 +54,7 @@ fn recover(
     let params = SolverParams {
         max_iterations: 20,
         min_relative_decrease: 1e-9,
+        reuse_factorisation,
         weights: Weights {
             rot: 1.0,
             reg: 1.0,
@@ -88,6 +99,63 @@ fn a_rigid_motion_is_recovered_exactly_by_both_solvers() {
         // Costs never rise (LM accepts only descending steps; re-association may only help here).
         for w in info.costs.windows(2) {
             assert!(w[1] <= w[0] * (1.0 + 1e-9) + 1e-12, "{:?}", info.costs);
+        }
+    }
+}
+
+#[test]
+fn a_kept_factorisation_recovers_the_same_deformation_with_fewer_factorisations() {
+    let (r, t) = rigid(0.03, -0.04, 0.05, [2.0, -1.0, 1.5]);
+    type Field = Box<dyn Fn(&Vector3<f64>) -> Vector3<f64>>;
+    let cases: Vec<(&str, Field)> = vec![
+        ("rigid", Box::new(move |p: &Vector3<f64>| r * p + t)),
+        (
+            "bend",
+            Box::new(|p: &Vector3<f64>| p + Vector3::new(0.0, 0.0, 0.004 * p.x * p.x)),
+        ),
+    ];
+    for (name, f) in &cases {
+        for decoupled in [false, true] {
+            let ((mean0, _), info0, _) = recover_with(f, decoupled, 20, 0);
+            assert_eq!(info0.reused_factorisations, 0);
+            for reuse in [1, 2] {
+                let ((mean, max), info, _) = recover_with(f, decoupled, 20, reuse);
+                eprintln!(
+                    "{name}, decoupled {decoupled}, reuse {reuse}: mean {mean:.5} (exact LM {mean0:.5}) mm, \
+                     max {max:.4}, {} iterations, {} factorisations + {} reused (exact: {} + {}), \
+                     {} rejected (exact: {}), cost {:.3e} -> {:.3e} (exact {:.3e})",
+                    info.iterations,
+                    info.factorisations,
+                    info.reused_factorisations,
+                    info0.factorisations,
+                    info0.reused_factorisations,
+                    info.rejected_steps,
+                    info0.rejected_steps,
+                    info.cost_before,
+                    info.cost_after,
+                    info0.cost_after
+                );
+                assert!(info.reused_factorisations > 0, "{name}: {info:?}");
+                assert!(
+                    info.factorisations < info0.factorisations,
+                    "{name}: {} factorisations with reuse {reuse}, {} without",
+                    info.factorisations,
+                    info0.factorisations
+                );
+                // The kept matrix's steps are accepted (a wrong one would be rejected and taken
+                // again from a fresh factorisation).
+                assert!(
+                    info.rejected_steps <= info0.rejected_steps + 1,
+                    "{name}: {info:?}"
+                );
+                assert!(
+                    mean < 1.2 * mean0 + 1e-4,
+                    "{name}, decoupled {decoupled}, reuse {reuse}: mean {mean} against {mean0}"
+                );
+                for w in info.costs.windows(2) {
+                    assert!(w[1] <= w[0] * (1.0 + 1e-9) + 1e-12, "{:?}", info.costs);
+                }
+            }
         }
     }
 }
