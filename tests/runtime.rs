@@ -302,6 +302,11 @@ fn runs_in_dependency_order_and_shares_payloads() {
         }
     }
     assert_eq!(json["params"]["right"]["add"], 10.0);
+    // The parameters the node ran with, defaults filled in.
+    assert_eq!(json["params"]["right"]["rendezvous"], false);
+    assert!(json["params"]["right"]
+        .as_object()
+        .is_some_and(|o| o.contains_key("hold_on")));
     // A node's own stages: `<id>.<stage>`, one sample per call (0.25, 0.5, ... 1.25 ms).
     let t = &json["timing_ms"]["left.add"];
     assert_eq!(t["frames"], 5);

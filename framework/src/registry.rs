@@ -134,14 +134,37 @@ pub trait Plugin: Send + Sync {
     fn output_dirs(&self, _params: &toml::Table) -> Vec<(String, PathBuf)> {
         Vec::new()
     }
+    /// Every parameter a node built from `params` runs with, defaults filled in (what
+    /// `metrics.json` records); `None` where the plugin cannot say (a dynamic plugin).
+    fn resolved_params(&self, _params: &toml::Table) -> Option<serde_json::Value> {
+        None
+    }
 }
 
 /// The folders a typed plugin's node writes, from its parameters.
 type OutputDirsFn<P> = dyn Fn(&P) -> Vec<(String, PathBuf)> + Send + Sync;
 
 /// Parses a typed parameter struct from a TOML table, naming the path of whatever is wrong.
-pub fn parse_params<P: DeserializeOwned>(params: &toml::Table) -> Result<P, BuildError> {
-    let value = toml::Value::Table(params.clone());
+///
+/// The table is laid over `P::default()`, table by table: a nested table the graph gives only
+/// in part (`solver = { max_iterations = 2 }`) keeps the plugin's own defaults for the rest,
+/// where plain deserialisation would take the nested type's defaults (a plugin that sets a
+/// nested default of its own, such as `fusion.template`'s `decoupled.level2_rings = 0`, would
+/// lose it as soon as any other key of that table is set). A parameter type must not use
+/// `#[serde(alias)]`: the alias and the default's own key would both be present.
+pub fn parse_params<P: DeserializeOwned + Serialize + Default>(
+    params: &toml::Table,
+) -> Result<P, BuildError> {
+    let mut value = match toml::Value::try_from(P::default()) {
+        Ok(v @ toml::Value::Table(_)) => v,
+        Ok(_) => toml::Value::Table(toml::Table::new()),
+        Err(e) => {
+            return Err(BuildError::Failed(format!(
+                "the plugin's default parameters cannot be written as TOML: {e}"
+            )))
+        }
+    };
+    merge_over(&mut value, params);
     serde_path_to_error::deserialize::<_, P>(value).map_err(|e| {
         let path = e.path().to_string();
         let key = e.path().iter().next().and_then(|seg| match seg {
@@ -153,6 +176,22 @@ pub fn parse_params<P: DeserializeOwned>(params: &toml::Table) -> Result<P, Buil
         let message = message.lines().next().unwrap_or_default().trim().to_owned();
         BuildError::Param { key, path, message }
     })
+}
+
+/// Lays `over` onto `base` key by key: tables present in both merge, anything else replaces.
+fn merge_over(base: &mut toml::Value, over: &toml::Table) {
+    let toml::Value::Table(b) = base else {
+        *base = toml::Value::Table(over.clone());
+        return;
+    };
+    for (k, v) in over {
+        match (b.get_mut(k), v) {
+            (Some(bv @ toml::Value::Table(_)), toml::Value::Table(ov)) => merge_over(bv, ov),
+            _ => {
+                b.insert(k.clone(), v.clone());
+            }
+        }
+    }
 }
 
 type BuildFn<P> = dyn Fn(P, &BuildContext) -> Result<Box<dyn Node>, BuildError> + Send + Sync;
@@ -168,7 +207,7 @@ pub struct TypedPlugin<P> {
 
 impl<P> TypedPlugin<P>
 where
-    P: DeserializeOwned + Serialize + schemars::JsonSchema + 'static,
+    P: DeserializeOwned + Serialize + Default + schemars::JsonSchema + 'static,
 {
     /// A plugin `id` with `summary`, ports, and a function building its node from `P`.
     pub fn new<N: Node + 'static>(
@@ -209,7 +248,7 @@ where
 
 impl<P> Plugin for TypedPlugin<P>
 where
-    P: DeserializeOwned + Serialize + schemars::JsonSchema + 'static,
+    P: DeserializeOwned + Serialize + Default + schemars::JsonSchema + 'static,
 {
     fn info(&self) -> &PluginInfo {
         &self.info
@@ -241,6 +280,12 @@ where
             (Some(f), Ok(p)) => f(&p),
             _ => Vec::new(),
         }
+    }
+
+    fn resolved_params(&self, params: &toml::Table) -> Option<serde_json::Value> {
+        parse_params::<P>(params)
+            .ok()
+            .and_then(|p| serde_json::to_value(&p).ok())
     }
 }
 
@@ -492,5 +537,76 @@ mod tests {
         let known = ["paths", "max_disparity", "device"];
         assert_eq!(closest("pahts", known.iter().copied()), Some("paths"));
         assert_eq!(closest("zzzzzz", known.iter().copied()), None);
+    }
+
+    #[derive(Clone, Debug, PartialEq, Serialize, serde::Deserialize)]
+    #[serde(deny_unknown_fields, default)]
+    struct Inner {
+        a: u32,
+        b: f64,
+        name: String,
+    }
+
+    impl Default for Inner {
+        fn default() -> Self {
+            Inner {
+                a: 1,
+                b: 2.0,
+                name: "inner".into(),
+            }
+        }
+    }
+
+    #[derive(Clone, Debug, PartialEq, Serialize, serde::Deserialize)]
+    #[serde(deny_unknown_fields, default)]
+    struct Outer {
+        inner: Inner,
+        list: Vec<u32>,
+        top: bool,
+    }
+
+    impl Default for Outer {
+        // The plugin's own nested default differs from `Inner::default()`.
+        fn default() -> Self {
+            Outer {
+                inner: Inner {
+                    a: 7,
+                    ..Inner::default()
+                },
+                list: vec![1, 2, 3],
+                top: true,
+            }
+        }
+    }
+
+    #[test]
+    fn a_nested_table_given_in_part_keeps_the_plugins_own_defaults() {
+        let t: toml::Table = toml::from_str("inner = { b = 5.0 }\nlist = [9]").unwrap();
+        let p: Outer = parse_params(&t).unwrap();
+        assert_eq!(
+            p,
+            Outer {
+                inner: Inner {
+                    a: 7,
+                    b: 5.0,
+                    name: "inner".into()
+                },
+                list: vec![9],
+                top: true,
+            }
+        );
+        assert_eq!(
+            parse_params::<Outer>(&toml::Table::new()).unwrap(),
+            Outer::default()
+        );
+        // Wrong keys and types are still named by their path.
+        let t: toml::Table = toml::from_str("inner = { c = 1 }").unwrap();
+        let e = parse_params::<Outer>(&t).unwrap_err().to_string();
+        assert!(e.contains("inner") && e.contains('c'), "{e}");
+        let t: toml::Table = toml::from_str("inner = { a = \"x\" }").unwrap();
+        let e = parse_params::<Outer>(&t).unwrap_err().to_string();
+        assert!(e.contains("inner.a"), "{e}");
+        let t: toml::Table = toml::from_str("inner = 3").unwrap();
+        assert!(parse_params::<Outer>(&t).is_err());
     }
 }

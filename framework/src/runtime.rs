@@ -351,7 +351,12 @@ impl Runtime {
                     TimingStats::from_samples(samples),
                 );
             }
-            let params = serde_json::to_value(&spec.params).unwrap_or(serde_json::Value::Null);
+            let params = spec
+                .plugin
+                .resolved_params(&spec.params)
+                .unwrap_or_else(|| {
+                    serde_json::to_value(&spec.params).unwrap_or(serde_json::Value::Null)
+                });
             metrics.params.insert(slot.id.clone(), params);
         }
         metrics

@@ -132,7 +132,7 @@ pub fn features(
 pub fn surf(image: &Path, max_keypoints: usize, repeat: usize) -> Result<(usize, f64), String> {
     use misslam_features_surf::surf::{extract, SurfParams, SurfScratch};
     let p = SurfParams {
-        max_keypoints,
+        n_features: max_keypoints,
         ..SurfParams::default()
     };
     let (w, h, gray) = gray_image(image)?;

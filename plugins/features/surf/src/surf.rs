@@ -22,10 +22,9 @@ pub struct SurfParams {
     pub intervals: usize,
     /// Sampling step of the first octave, pixels (it doubles per octave).
     pub init_sample: usize,
-    /// Keep at most this many keypoints, the strongest (0: all). Also accepted as
-    /// `n_features`, ORB's name, so a graph swaps the two by its plugin line alone.
-    #[serde(alias = "n_features")]
-    pub max_keypoints: usize,
+    /// Keep at most this many keypoints, the strongest (0: all). ORB's name for the same
+    /// limit, so a graph swaps the two by its plugin line alone.
+    pub n_features: usize,
     /// Upright SURF (U-SURF): no orientation, faster, for a camera that does not roll.
     pub upright: bool,
     /// Dense SURF: descriptors on a grid instead of detected keypoints.
@@ -65,7 +64,7 @@ impl Default for SurfParams {
             octaves: 4,
             intervals: 4,
             init_sample: 1,
-            max_keypoints: 2000,
+            n_features: 2000,
             upright: false,
             dense: DenseParams::default(),
         }
@@ -368,9 +367,9 @@ fn detect(w: usize, h: usize, p: &SurfParams, s: &mut SurfScratch, out: &mut Vec
             }
         }
     }
-    if p.max_keypoints > 0 && found.len() > p.max_keypoints {
-        found.select_nth_unstable_by(p.max_keypoints, |a, b| b.response.total_cmp(&a.response));
-        found.truncate(p.max_keypoints);
+    if p.n_features > 0 && found.len() > p.n_features {
+        found.select_nth_unstable_by(p.n_features, |a, b| b.response.total_cmp(&a.response));
+        found.truncate(p.n_features);
     }
     found.sort_unstable_by(|a, b| {
         (a.y, a.x)
