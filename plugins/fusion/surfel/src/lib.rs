@@ -87,7 +87,12 @@ impl Default for Params {
     fn default() -> Self {
         Params {
             graph: GraphParams::default(),
-            solver: SolverParams::default(),
+            // Each factorisation also serves the next iteration: the same accuracy, fusion 1.1
+            // to 1.3x faster (see `SolverParams::reuse_factorisation` and the README's "Speed").
+            solver: SolverParams {
+                reuse_factorisation: 1,
+                ..SolverParams::default()
+            },
             solver_kind: SolverKind::Decoupled,
             decoupled: DecoupledParams::default(),
             stride: 4,
@@ -459,9 +464,14 @@ impl SurfelNode {
             metrics
                 .values
                 .insert("fusion.solve_ms".into(), info.ms_total);
-            metrics
-                .values
-                .insert("fusion.iterations".into(), info.iterations as f64);
+            for (key, v) in [
+                ("fusion.iterations", info.iterations),
+                ("fusion.factorisations", info.factorisations),
+                ("fusion.reused_factorisations", info.reused_factorisations),
+                ("fusion.rejected_steps", info.rejected_steps),
+            ] {
+                metrics.values.insert(key.into(), v as f64);
+            }
 
             // 3. Fusion into the live model, through an index map at stride resolution.
             let (mut live, mut live_n) = (Vec::new(), Vec::new());
@@ -858,7 +868,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
             PortSpec::new(
                 "info",
                 PortType::Metrics,
-                "fusion.surfels, nodes, fused, added, removed, visible, solve_ms, iterations, correspondences, anchors",
+                "fusion.surfels, nodes, fused, added, removed, visible, solve_ms, iterations, factorisations, reused_factorisations, rejected_steps, correspondences, anchors",
             ),
         ],
         build,

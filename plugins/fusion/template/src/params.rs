@@ -169,7 +169,11 @@ impl Default for Params {
             field: FieldParams::default(),
             align: AlignParams::default(),
             graph: GraphParams::default(),
-            solver: SolverParams::default(),
+            // Each factorisation also serves the next iteration (as in `fusion.surfel`).
+            solver: SolverParams {
+                reuse_factorisation: 1,
+                ..SolverParams::default()
+            },
             solver_kind: SolverKind::Decoupled,
             decoupled: DecoupledParams {
                 level2_rings: 0,
