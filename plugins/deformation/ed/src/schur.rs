@@ -123,8 +123,7 @@ impl Elimination {
         rhs: &mut [f64],
         damp: impl Fn(f64) -> f64,
     ) -> bool {
-        for (e, &s) in self.elim.iter().enumerate() {
-            let s = s as usize;
+        for e in 0..self.elim.len() {
             let (t0, t1) = (self.t_start[e], self.t_start[e + 1]);
             let nt = t1 - t0;
             let diag = &blocks[self.t_blk[t0].0 as usize];
@@ -154,11 +153,6 @@ impl Elimination {
                     }
                 }
             }
-            let wv = &mut self.w_vec[e];
-            for r in 0..9 {
-                wv[r] = grad[12 * s + AFF[r]];
-            }
-            forward9(l, wv, 1);
             forward9(l, wm, width);
             let t = &self.t_slots[t0..t1];
             let pr = &self.pair_rowoff[self.pair_start[e]..self.pair_start[e] + nt * nt];
@@ -182,19 +176,16 @@ impl Elimination {
                         }
                     }
                 }
-                for c in 0..3 {
-                    rhs[cb + c] += (0..9)
-                        .map(|k| wm[k * width + 3 * qb + c] * wv[k])
-                        .sum::<f64>();
-                }
             }
         }
+        self.reduce_rhs(grad, layout, rhs);
         true
     }
 
-    /// The right-hand side part of [`Self::eliminate`] alone, with the factors of the last
-    /// elimination and a new gradient: `w = L^-1 g_A`, `rhs += W^T w` (the reduced `rhs` must
-    /// hold `-g_K` already). [`Self::back_substitute`] then uses this `w`.
+    /// The right-hand side part of the elimination, with the factors of the last
+    /// [`Self::eliminate`] (which ends with it) and the gradient `grad`: `w = L^-1 g_A`,
+    /// `rhs += W^T w` (the reduced `rhs` must hold `-g_K` already). [`Self::back_substitute`]
+    /// then uses this `w`.
     pub(crate) fn reduce_rhs(&mut self, grad: &[f64], layout: &Layout, rhs: &mut [f64]) {
         for (e, &s) in self.elim.iter().enumerate() {
             let s = s as usize;

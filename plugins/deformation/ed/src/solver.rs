@@ -54,6 +54,17 @@ pub struct Info {
     pub ms_total: f64,
 }
 
+/// What an assembly writes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Assembly {
+    /// The blocks and the gradient, the data terms in parallel.
+    Full,
+    /// The gradient alone (the step reuses a kept factorisation).
+    GradientOnly,
+    /// The blocks and the gradient, the data terms point by point (the test reference).
+    SerialReference,
+}
+
 /// Dense J^T W J (row-major), J^T W r, each node's block index (u32::MAX when fixed), cost.
 pub type DenseLinearization = (Vec<f64>, Vec<f64>, Vec<u32>, f64);
 
@@ -410,9 +421,10 @@ impl Solver {
         pose: &Isometry3<f64>,
         set: &SolveSet,
         params: &SolverParams,
-        reference: bool,
-        grad_only: bool,
+        mode: Assembly,
     ) {
+        let grad_only = mode == Assembly::GradientOnly;
+        let reference = mode == Assembly::SerialReference;
         let w = &params.weights;
         let sys = &mut self.system;
         // E_rot.
@@ -637,7 +649,12 @@ impl Solver {
             self.data.build(&self.system, problem);
         }
         let cost = self.start(graph, problem, pose, set, params);
-        self.assemble(graph, problem, pose, set, params, reference, false);
+        let mode = if reference {
+            Assembly::SerialReference
+        } else {
+            Assembly::Full
+        };
+        self.assemble(graph, problem, pose, set, params, mode);
         Ok((
             self.system.to_dense(),
             self.system.grad.clone(),
@@ -753,7 +770,12 @@ impl Solver {
             // gradient only (the blocks are assembled if that step is rejected).
             let mut grad_only = reuses_left > 0 && self.system.is_factored();
             let tb = Instant::now();
-            self.assemble(graph, problem, pose, set, params, false, grad_only);
+            let mode = if grad_only {
+                Assembly::GradientOnly
+            } else {
+                Assembly::Full
+            };
+            self.assemble(graph, problem, pose, set, params, mode);
             info.ms_assemble += tb.elapsed().as_secs_f64() * 1e3;
             let pose0 = *pose;
             self.saved.clear();
@@ -770,7 +792,7 @@ impl Solver {
                     grad_only = false;
                     self.system.prepare(graph.len(), &key)?;
                     let tb = Instant::now();
-                    self.assemble(graph, problem, pose, set, params, false, false);
+                    self.assemble(graph, problem, pose, set, params, Assembly::Full);
                     info.ms_assemble += tb.elapsed().as_secs_f64() * 1e3;
                 }
                 let tf = Instant::now();

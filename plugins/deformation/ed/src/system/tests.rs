@@ -1,0 +1,243 @@
+#![allow(clippy::unwrap_used)]
+use super::*;
+use crate::schur::AFF;
+use misslam_framework::nalgebra::{DMatrix, DVector};
+
+/// A small deterministic generator (xorshift) for the test's random system.
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> f64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        (self.0 >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+    }
+}
+
+/// Assembles a system with the structure the solver produces: E_reg edges along a ring and
+/// chords, data points binding pairs of the data nodes, a PSD diagonal per node (E_rot's
+/// place), and the pose coupled through the data nodes. Returns it and the node count.
+fn random_system(pose: bool, eliminate: bool, rng: &mut Rng) -> BlockSystem {
+    const N: u32 = 14;
+    let data_nodes: Vec<u32> = vec![0, 1, 2, 5, 9];
+    let mut edges = Vec::new();
+    for j in 0..N {
+        edges.push((j, (j + 1) % N));
+        edges.push((j, (j + 3) % N));
+        if j % 2 == 0 {
+            edges.push((j, (j + N - 1) % N));
+        }
+    }
+    let points: Vec<(u32, u32)> = vec![(0, 1), (1, 2), (2, 5), (5, 9), (9, 0), (0, 5)];
+    let mut pairs: Vec<(u32, u32)> = edges
+        .iter()
+        .chain(&points)
+        .map(|&(a, b)| (a.min(b), a.max(b)))
+        .collect();
+    pairs.sort_unstable();
+    pairs.dedup();
+    let eliminated: Vec<u32> = if eliminate {
+        (0..N).filter(|j| !data_nodes.contains(j)).collect()
+    } else {
+        Vec::new()
+    };
+    let mut links: Vec<(u32, u32)> = edges
+        .iter()
+        .copied()
+        .filter(|(j, _)| eliminated.contains(j))
+        .collect();
+    links.sort_unstable();
+    links.dedup();
+    let key = PatternKey {
+        free: (0..N).collect(),
+        pairs,
+        pose,
+        eliminated,
+        links,
+    };
+    let mut sys = BlockSystem::default();
+    sys.prepare(N as usize, &key).unwrap();
+    let slot = sys.slot.clone();
+    let s = |j: u32| slot[j as usize];
+    const E4: [f64; 4] = [0.0, 0.0, 0.0, 1.0];
+    let rnd4 = |rng: &mut Rng| [rng.next() * 5.0, rng.next() * 5.0, rng.next() * 5.0, 1.0];
+    for &(j, k) in &edges {
+        let u = rnd4(rng);
+        let w = 1.0 + rng.next().abs();
+        let (sj, sk) = (s(j), s(k));
+        sys.add_kron_identity(sj, sj, &u, &u, w);
+        sys.add_kron_identity(sk, sk, &E4, &E4, w);
+        sys.add_kron_identity(sj, sk, &u, &E4, -w);
+    }
+    for &(a, b) in &points {
+        let n = [rng.next(), rng.next(), rng.next()];
+        let m: [[f64; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|k| n[i] * n[k]));
+        let (ua, ub) = (rnd4(rng), rnd4(rng));
+        let (wa, wb) = (0.5 + rng.next().abs(), 0.5 + rng.next().abs());
+        let (sa, sb) = (s(a), s(b));
+        sys.add_kron(sa, sa, &m, &ua, &ua, wa * wa);
+        sys.add_kron(sb, sb, &m, &ub, &ub, wb * wb);
+        sys.add_kron(sa, sb, &m, &ua, &ub, wa * wb);
+    }
+    for j in 0..N {
+        // A PSD 12x12 of rank 6 (E_rot has 6 rows), plus the ridge the solver's damping adds.
+        let g: Vec<f64> = (0..72).map(|_| rng.next()).collect();
+        let mut h = [0.0; 144];
+        for r in 0..12 {
+            for c in 0..12 {
+                h[c * 12 + r] = (0..6).map(|q| g[q * 12 + r] * g[q * 12 + c]).sum();
+            }
+        }
+        sys.add_diag(s(j), &h);
+    }
+    let nb = sys.blocks_solved();
+    for x in sys.grad.iter_mut() {
+        *x = rng.next();
+    }
+    if pose {
+        for p in 0..6 {
+            sys.pose_block[p * 6 + p] = 50.0;
+        }
+        for &j in &data_nodes {
+            for v in sys.pose_cross[s(j) as usize].iter_mut() {
+                *v = 0.3 * rng.next();
+            }
+        }
+    }
+    assert_eq!(sys.blocks_solved(), nb);
+    sys
+}
+
+fn dense_solve(sys: &BlockSystem, lambda: f64, ridge: f64) -> Option<Vec<f64>> {
+    let n = sys.dim();
+    let mut h = DMatrix::from_row_slice(n, n, &sys.to_dense());
+    for i in 0..n {
+        let d = h[(i, i)];
+        h[(i, i)] = d + lambda * (d.abs() + ridge) + 1e-12 * ridge;
+    }
+    let g = DVector::from_column_slice(&sys.grad);
+    h.cholesky().map(|c| c.solve(&(-g)).as_slice().to_vec())
+}
+
+#[test]
+fn eliminating_the_data_free_affine_parts_gives_the_full_systems_solution() {
+    let mut rng = Rng(0x9e37_79b9_7f4a_7c15);
+    for pose in [false, true] {
+        for lambda in [0.0, 0.05] {
+            let mut sys = random_system(pose, true, &mut rng);
+            // 5 data nodes keep 12 unknowns, 9 data-free ones keep their translation.
+            assert_eq!(sys.factor_dim(), 5 * 12 + 9 * 3 + if pose { 6 } else { 0 });
+            let want = dense_solve(&sys, lambda, 1e-6).expect("the test system is SPD");
+            let mut dx = Vec::new();
+            assert!(sys.solve(lambda, 1e-6, &mut dx).unwrap());
+            let scale = want.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+            let err = dx
+                .iter()
+                .zip(&want)
+                .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+            assert!(
+                err <= 1e-9 * scale.max(1.0),
+                "pose {pose}, lambda {lambda}: max deviation {err:e} (scale {scale:e})"
+            );
+            // And the same system without elimination agrees too.
+            let mut full = random_system(pose, false, &mut Rng(rng.0));
+            assert_eq!(full.factor_dim(), 14 * 12 + if pose { 6 } else { 0 });
+            let want = dense_solve(&full, lambda, 1e-6).unwrap();
+            let mut dx = Vec::new();
+            assert!(full.solve(lambda, 1e-6, &mut dx).unwrap());
+            let err = dx
+                .iter()
+                .zip(&want)
+                .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+            assert!(err <= 1e-9 * scale.max(1.0), "without elimination: {err:e}");
+        }
+    }
+}
+
+#[test]
+fn a_kept_factorisation_solves_a_new_gradient_with_the_old_matrix() {
+    let mut rng = Rng(0x2545_f491_4f6c_dd1d);
+    for pose in [false, true] {
+        for eliminate in [false, true] {
+            let mut sys = random_system(pose, eliminate, &mut rng);
+            let mut dx = Vec::new();
+            // Nothing factorised yet: refused, not a stale answer.
+            assert!(!sys.is_factored());
+            assert!(!sys.resolve(&mut dx).unwrap());
+            let lambda = 0.05;
+            let old = dense_solve(&sys, lambda, 1e-6).unwrap();
+            assert!(sys.solve(lambda, 1e-6, &mut dx).unwrap());
+            assert!(sys.is_factored());
+            // The same gradient again: the same step.
+            let mut again = Vec::new();
+            assert!(sys.resolve(&mut again).unwrap());
+            let dev = again
+                .iter()
+                .zip(&dx)
+                .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+            assert!(dev <= 1e-12 * old.iter().fold(1.0f64, |m, x| m.max(x.abs())));
+            // A new gradient with the blocks zeroed (what a gradient-only assembly leaves):
+            // the old damped matrix's solution for it.
+            let h_old = sys.to_dense();
+            let g: Vec<f64> = (0..sys.dim()).map(|_| rng.next()).collect();
+            sys.blocks.iter_mut().for_each(|b| b.fill(0.0));
+            sys.pose_cross.iter_mut().for_each(|b| b.fill(0.0));
+            sys.pose_block.fill(0.0);
+            sys.grad.copy_from_slice(&g);
+            let n = sys.dim();
+            let mut h = DMatrix::from_row_slice(n, n, &h_old);
+            for i in 0..n {
+                let d = h[(i, i)];
+                h[(i, i)] = d + lambda * (d.abs() + 1e-6) + 1e-12 * 1e-6;
+            }
+            let want = h
+                .cholesky()
+                .unwrap()
+                .solve(&(-DVector::from_column_slice(&g)));
+            assert!(sys.resolve(&mut dx).unwrap());
+            let scale = want.iter().fold(1.0f64, |m, x| m.max(x.abs()));
+            let err = dx
+                .iter()
+                .zip(want.iter())
+                .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+            assert!(
+                err <= 1e-9 * scale,
+                "pose {pose}, eliminate {eliminate}: max deviation {err:e} (scale {scale:e})"
+            );
+            // A new pattern drops the factorisation.
+            let key = PatternKey {
+                pose: !sys.key.pose,
+                ..sys.key.clone()
+            };
+            sys.prepare(sys.slot.len(), &key).unwrap();
+            assert!(!sys.is_factored());
+            assert!(!sys.resolve(&mut dx).unwrap());
+        }
+    }
+}
+
+#[test]
+fn an_eliminated_block_that_is_not_positive_definite_is_reported() {
+    let mut sys = random_system(false, true, &mut Rng(7));
+    // Make the affine block of one eliminated node indefinite: its 9x9 Cholesky must fail.
+    let s = sys.slot[3];
+    let idx = sys.find(s, s);
+    for r in AFF {
+        sys.blocks[idx][r * 12 + r] = -1.0;
+    }
+    let mut dx = Vec::new();
+    assert!(!sys.solve(0.0, 1e-6, &mut dx).unwrap());
+}
+
+#[test]
+fn a_link_outside_the_pairs_is_an_error_not_a_panic() {
+    let key = PatternKey {
+        free: vec![0, 1, 2],
+        pairs: vec![(0, 1)],
+        pose: false,
+        eliminated: vec![2],
+        links: vec![(2, 0)],
+    };
+    let err = BlockSystem::default().prepare(3, &key).unwrap_err();
+    assert!(err.contains("not among the pairs"), "{err}");
+}
