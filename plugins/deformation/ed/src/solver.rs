@@ -12,11 +12,13 @@
 
 use crate::assemble::DataAssembly;
 use crate::evaluate::Pass;
-use crate::graph::{apply_node, Binding, EdGraph};
+use crate::graph::{Binding, EdGraph};
+use crate::pairs::CoupledPairs;
 use crate::problem::{FieldJacobian, Method, Problem, SolverParams};
+use crate::residuals::pose_rot_residual;
+pub use crate::residuals::{pose_update, reg_residual, rot_residuals};
 use crate::system::{BlockSystem, PatternKey};
-use misslam_framework::nalgebra::{Isometry3, Matrix3, Translation3, UnitQuaternion, Vector3};
-use rayon::prelude::*;
+use misslam_framework::nalgebra::{Isometry3, Matrix3, Vector3};
 use std::time::Instant;
 
 /// What one solve did.
@@ -52,80 +54,6 @@ pub struct Info {
     pub ms_factor: f64,
     /// Whole solve, ms.
     pub ms_total: f64,
-}
-
-/// The set of coupled node pairs (j < k) of a solve, collected from every point's binding. With
-/// up to [`CoupledPairs::DENSE_MAX`] solved nodes a bit per pair of their local ids (hundreds of
-/// thousands of insertions a frame, most of them repeats); beyond, a list sorted once.
-enum CoupledPairs {
-    Dense {
-        /// Node id -> local id among the solved nodes.
-        local: Vec<u32>,
-        free: Vec<u32>,
-        bits: Vec<u64>,
-    },
-    List(Vec<(u32, u32)>),
-}
-
-impl CoupledPairs {
-    const DENSE_MAX: usize = 2048;
-
-    fn new(n_nodes: usize, free: &[u32]) -> Self {
-        if free.len() > Self::DENSE_MAX || !free.windows(2).all(|w| w[0] < w[1]) {
-            return CoupledPairs::List(Vec::new());
-        }
-        let mut local = vec![u32::MAX; n_nodes];
-        for (i, &j) in free.iter().enumerate() {
-            local[j as usize] = i as u32;
-        }
-        let n = free.len();
-        CoupledPairs::Dense {
-            local,
-            free: free.to_vec(),
-            bits: vec![0; (n * n).div_ceil(64)],
-        }
-    }
-
-    /// Adds the pair of two distinct solved nodes, in either order.
-    #[inline]
-    fn insert(&mut self, x: u32, y: u32) {
-        match self {
-            CoupledPairs::Dense {
-                local, free, bits, ..
-            } => {
-                let (a, b) = (local[x as usize] as usize, local[y as usize] as usize);
-                let bit = a.min(b) * free.len() + a.max(b);
-                bits[bit / 64] |= 1 << (bit % 64);
-            }
-            CoupledPairs::List(v) => v.push((x.min(y), x.max(y))),
-        }
-    }
-
-    /// The pairs (j < k by node id), sorted, unique.
-    fn into_sorted(self) -> Vec<(u32, u32)> {
-        match self {
-            CoupledPairs::Dense { free, bits, .. } => {
-                // Local ids ascend with node ids (`free` is ascending), so row-major order over
-                // (a < b) is the sorted order of (free[a], free[b]).
-                let n = free.len();
-                let mut out = Vec::new();
-                for (w, &word) in bits.iter().enumerate() {
-                    let mut m = word;
-                    while m != 0 {
-                        let bit = w * 64 + m.trailing_zeros() as usize;
-                        m &= m - 1;
-                        out.push((free[bit / n], free[bit % n]));
-                    }
-                }
-                out
-            }
-            CoupledPairs::List(mut v) => {
-                v.par_sort_unstable();
-                v.dedup();
-                v
-            }
-        }
-    }
 }
 
 /// What an assembly writes.
@@ -195,49 +123,9 @@ pub struct Solver {
     motion_bound: Vec<bool>,
 }
 
-/// The pose retraction the solver uses: world_from_camera * exp(xi), xi = (rho, omega).
-pub fn pose_update(pose: &Isometry3<f64>, xi: &[f64]) -> Isometry3<f64> {
-    let step = Isometry3::from_parts(
-        Translation3::new(xi[0], xi[1], xi[2]),
-        UnitQuaternion::from_scaled_axis(Vector3::new(xi[3], xi[4], xi[5])),
-    );
-    pose * step
-}
-
 #[inline]
 fn u_of(v: &Vector3<f64>, g: &Vector3<f64>) -> [f64; 4] {
     [v.x - g.x, v.y - g.y, v.z - g.z, 1.0]
-}
-
-/// Residuals and Jacobian of Sumner's rotation term for one node: 6 rows over the 12 unknowns.
-/// Off-diagonal rows carry sqrt(2), so the sum of squares equals ||A^T A - I||_F^2.
-pub fn rot_residuals(p: &[f64; 12]) -> ([f64; 6], [[f64; 12]; 6]) {
-    let col = |i: usize| Vector3::new(p[i], p[4 + i], p[8 + i]);
-    let c = [col(0), col(1), col(2)];
-    let s2 = std::f64::consts::SQRT_2;
-    let mut r = [0.0; 6];
-    let mut j = [[0.0; 12]; 6];
-    let put = |row: &mut [f64; 12], i: usize, v: Vector3<f64>, f: f64| {
-        row[i] += f * v.x;
-        row[4 + i] += f * v.y;
-        row[8 + i] += f * v.z;
-    };
-    let pairs = [(0, 1), (0, 2), (1, 2)];
-    for (q, &(a, b)) in pairs.iter().enumerate() {
-        r[q] = s2 * c[a].dot(&c[b]);
-        put(&mut j[q], a, c[b], s2);
-        put(&mut j[q], b, c[a], s2);
-    }
-    for a in 0..3 {
-        r[3 + a] = c[a].dot(&c[a]) - 1.0;
-        put(&mut j[3 + a], a, c[a], 2.0);
-    }
-    (r, j)
-}
-
-/// The rotation-vector residual of E_r: log(R~^T R).
-fn pose_rot_residual(prior: &Isometry3<f64>, pose: &Isometry3<f64>) -> Vector3<f64> {
-    (prior.rotation.inverse() * pose.rotation).scaled_axis()
 }
 
 impl Solver {
@@ -974,54 +862,5 @@ impl Solver {
         info.symbolic_builds = self.system.symbolic_builds - builds0;
         info.ms_total = t0.elapsed().as_secs_f64() * 1e3;
         Ok(info)
-    }
-}
-
-/// E_reg residual of directed edge (j, k).
-pub fn reg_residual(graph: &EdGraph, j: u32, k: u32) -> Vector3<f64> {
-    let g = graph.nodes();
-    let (gj, gk) = (g[j as usize], g[k as usize]);
-    let pk = &graph.warp[k as usize];
-    apply_node(&graph.warp[j as usize], &gj, &gk) - gk - Vector3::new(pk[3], pk[7], pk[11])
-}
-
-#[cfg(test)]
-mod tests {
-    use super::CoupledPairs;
-
-    #[test]
-    fn the_pair_bitmap_gives_the_sorted_unique_pairs_of_the_list() {
-        // Solved nodes with gaps in their ids, pairs inserted in both orders and repeated.
-        let free: Vec<u32> = (0..300).map(|i| 3 * i + 1).collect();
-        let mut state = 0x853c_49e6_748f_ea9bu64;
-        let mut next = |n: usize| {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state % n as u64) as usize
-        };
-        let mut dense = CoupledPairs::new(1000, &free);
-        let mut list = CoupledPairs::List(Vec::new());
-        assert!(matches!(dense, CoupledPairs::Dense { .. }));
-        for _ in 0..20_000 {
-            let (a, b) = (free[next(free.len())], free[next(free.len())]);
-            if a != b {
-                dense.insert(a, b);
-                list.insert(b, a);
-            }
-        }
-        let (d, l) = (dense.into_sorted(), list.into_sorted());
-        assert!(l.windows(2).all(|w| w[0] < w[1]) && l.iter().all(|&(a, b)| a < b));
-        assert_eq!(d, l);
-        // Too many nodes, or ids not ascending: the list.
-        let many: Vec<u32> = (0..=CoupledPairs::DENSE_MAX as u32).collect();
-        assert!(matches!(
-            CoupledPairs::new(many.len(), &many),
-            CoupledPairs::List(_)
-        ));
-        assert!(matches!(
-            CoupledPairs::new(10, &[4, 2]),
-            CoupledPairs::List(_)
-        ));
     }
 }

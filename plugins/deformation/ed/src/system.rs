@@ -29,6 +29,16 @@ use faer::{Par, Side};
 
 use crate::schur::{sym12, Elimination, Layout, KEEP_FULL, KEEP_T};
 
+/// The unknowns of a slot the reduced system keeps, in its 12-layout: the translation of an
+/// eliminated slot, all twelve (affine first) of one with data.
+fn kept(eliminated: bool) -> &'static [usize] {
+    if eliminated {
+        &KEEP_T
+    } else {
+        &KEEP_FULL
+    }
+}
+
 /// Block pattern key: solved nodes, coupled node pairs (node ids, j < k), pose block or not.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct PatternKey {
@@ -528,13 +538,6 @@ impl BlockSystem {
         let damp = |d: f64| d + lambda * (d.abs() + ridge) + 1e-12 * ridge;
         let nf = self.nb;
         let nk = self.koff[nf];
-        let kept = |e: bool| -> &'static [usize] {
-            if e {
-                &KEEP_T
-            } else {
-                &KEEP_FULL
-            }
-        };
         // The kept parts of the assembled blocks, into the reduced CSC values.
         self.values.fill(0.0);
         for bj in 0..nf {
@@ -671,11 +674,7 @@ impl BlockSystem {
     fn rhs_from_grad(&mut self) {
         let nf = self.nb;
         for bj in 0..nf {
-            let kj: &[usize] = if self.elim_slot[bj] {
-                &KEEP_T
-            } else {
-                &KEEP_FULL
-            };
+            let kj = kept(self.elim_slot[bj]);
             let c0 = self.koff[bj];
             for (kr, &or) in kj.iter().enumerate() {
                 self.rhs[c0 + kr] = -self.grad[12 * bj + or];
@@ -694,13 +693,6 @@ impl BlockSystem {
     fn expand(&self, dx: &mut [f64]) -> bool {
         let nf = self.nb;
         let nk = self.koff[nf];
-        let kept = |e: bool| -> &'static [usize] {
-            if e {
-                &KEEP_T
-            } else {
-                &KEEP_FULL
-            }
-        };
         // Back to the 12-layout: kept unknowns directly, eliminated ones by back-substitution.
         for s in 0..nf {
             for (kr, &or) in kept(self.elim_slot[s]).iter().enumerate() {
