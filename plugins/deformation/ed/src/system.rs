@@ -605,27 +605,22 @@ impl BlockSystem {
             &self.values,
         );
         let stack = MemStack::new(&mut self.scratch);
-        let llt = match symbolic.factorize_numeric_llt::<f64>(
-            &mut self.l_values,
-            a,
-            Side::Upper,
-            Default::default(),
-            Par::Seq,
-            stack,
-            Default::default(),
-        ) {
-            Ok(l) => l,
-            Err(_) => return Ok(false),
-        };
-        let rhs = faer::MatMut::from_column_major_slice_mut(self.rhs.as_mut_slice(), nr, 1);
-        llt.solve_in_place_with_conj(
-            faer::Conj::No,
-            rhs,
-            Par::Seq,
-            MemStack::new(&mut self.scratch),
-        );
+        if symbolic
+            .factorize_numeric_llt::<f64>(
+                &mut self.l_values,
+                a,
+                Side::Upper,
+                Default::default(),
+                Par::Seq,
+                stack,
+                Default::default(),
+            )
+            .is_err()
+        {
+            return Ok(false);
+        }
         self.factored = true;
-        Ok(self.expand(dx))
+        self.solve_factored(dx)
     }
 
     /// Whether [`Self::resolve`] can run: the last [`Self::solve`] factorised the current pattern.
@@ -654,6 +649,12 @@ impl BlockSystem {
         };
         self.elimination
             .reduce_rhs(&self.grad, &layout, &mut self.rhs);
+        self.solve_factored(dx)
+    }
+
+    /// Solves the reduced system in `rhs` with the factor in `l_values`, then expands the
+    /// solution into `dx` (see [`Self::expand`]).
+    fn solve_factored(&mut self, dx: &mut [f64]) -> Result<bool, String> {
         let symbolic = self
             .symbolic
             .as_ref()
