@@ -64,6 +64,14 @@ fn mis_slam_reconstructs_the_beating_heart_within_the_targets() {
             corr > 50.0,
             "noise {noise}: {corr} correspondences per solve"
         );
+        // The graph's two iterations share one factorisation (the node's default
+        // `solver.reuse_factorisation = 1`): one for level I, at most one for level II.
+        let (f, r) = (
+            e["fusion.factorisations_per_solve"],
+            e["fusion.reused_factorisations_per_solve"],
+        );
+        eprintln!("noise {noise}: {f:.2} factorisations and {r:.2} kept ones per solve");
+        assert!(r >= 0.5 && f < 2.5, "noise {noise}: {f} made, {r} kept");
     }
 }
 

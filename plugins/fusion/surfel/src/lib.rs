@@ -282,9 +282,12 @@ pub struct SurfelNode {
     disagreeing: bool,
     /// The previous frame's keypoints anchored to the model (E_corr).
     corr: corr::CorrTracker,
-    /// Solves run, and the correspondences they used (for `metrics.json`).
+    /// Solves run, the correspondences they used, and their numeric factorisations made and
+    /// kept for a later iteration (for `metrics.json`).
     solves: u64,
     corr_used: u64,
+    factorisations: u64,
+    reused_factorisations: u64,
 }
 
 /// A fused frame whose depth mostly did not meet the model: more samples became new surfels
@@ -464,6 +467,8 @@ impl SurfelNode {
             metrics
                 .values
                 .insert("fusion.solve_ms".into(), info.ms_total);
+            self.factorisations += info.factorisations as u64;
+            self.reused_factorisations += info.reused_factorisations as u64;
             for (key, v) in [
                 ("fusion.iterations", info.iterations),
                 ("fusion.factorisations", info.factorisations),
@@ -760,6 +765,15 @@ impl Node for SurfelNode {
             "fusion.correspondences_per_solve",
             self.corr_used as f64 / self.solves.max(1) as f64,
         );
+        // Both levels of a decoupled solve count.
+        ctx.report_eval(
+            "fusion.factorisations_per_solve",
+            self.factorisations as f64 / self.solves.max(1) as f64,
+        );
+        ctx.report_eval(
+            "fusion.reused_factorisations_per_solve",
+            self.reused_factorisations as f64 / self.solves.max(1) as f64,
+        );
         ctx.report_eval("fusion.anchors", self.corr.anchors() as f64);
         Ok(())
     }
@@ -825,6 +839,8 @@ pub fn build(p: Params, _: &BuildContext) -> Result<SurfelNode, BuildError> {
         corr: corr::CorrTracker::default(),
         solves: 0,
         corr_used: 0,
+        factorisations: 0,
+        reused_factorisations: 0,
     })
 }
 
