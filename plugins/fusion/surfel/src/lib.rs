@@ -22,14 +22,15 @@
 #![deny(missing_docs)]
 
 pub mod corr;
+mod params;
+pub use params::Params;
 
-use misslam_deformation_ed::decoupled::DecoupledParams;
 use misslam_deformation_ed::engine::Engine;
-use misslam_deformation_ed::graph::{Binding, EdGraph, GraphParams};
+use misslam_deformation_ed::graph::{Binding, EdGraph};
 use misslam_deformation_ed::observe::{
     color_at, color_quality, scan_from_depth_into, visible_points,
 };
-use misslam_deformation_ed::problem::{Intrinsics, ModelSubset, Problem, Scan, SolverParams};
+use misslam_deformation_ed::problem::{Intrinsics, ModelSubset, Problem, Scan};
 use misslam_framework::geometry::{arr3, vec3};
 use misslam_framework::nalgebra::{Isometry3, Point3, Vector3};
 use misslam_framework::{
@@ -42,122 +43,6 @@ use rayon::prelude::*;
 use corr::local_inverses;
 pub use corr::CorrParams;
 pub use misslam_deformation_ed::engine::SolverKind;
-
-/// Parameters of `fusion.surfel`.
-#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
-#[serde(deny_unknown_fields, default)]
-pub struct Params {
-    /// Deformation graph: spacing (mm), neighbours, sampling.
-    pub graph: GraphParams,
-    /// Energy weights and solver options.
-    pub solver: SolverParams,
-    /// Batch or decoupled.
-    pub solver_kind: SolverKind,
-    /// The decoupled split (with `solver_kind = "decoupled"`).
-    pub decoupled: DecoupledParams,
-    /// Fuse and add one depth pixel per `stride` x `stride`.
-    pub stride: u32,
-    /// Depth step (mm) to a neighbour above which a pixel gets no normal (where the node lifts
-    /// the depth itself: without the `vertices` and `normals` inputs).
-    pub normal_max_step_mm: f32,
-    /// epsilon_dv: a surfel is visible when the depth it projects onto is this close, mm.
-    pub visible_distance_mm: f64,
-    /// epsilon_nv: and its normal within this angle, degrees.
-    pub visible_angle_deg: f64,
-    /// epsilon_df: a depth pixel fuses into a surfel this close, mm.
-    pub fuse_distance_mm: f64,
-    /// epsilon_nf: with normals within this angle, degrees.
-    pub fuse_angle_deg: f64,
-    /// omega_max: the confidence weight stops growing here.
-    pub max_weight: f32,
-    /// A surfel below this weight ...
-    pub stable_weight: f32,
-    /// ... unseen for this many frames is removed.
-    pub unstable_frames: u64,
-    /// Most surfels kept; beyond it no new ones are added (logged).
-    pub max_surfels: usize,
-    /// Most graph nodes; beyond it the graph stops growing (logged) and new surfels bind to the
-    /// nodes there are.
-    pub max_nodes: usize,
-    /// Sparse correspondences (E_corr) from the `features` input.
-    pub correspondences: CorrParams,
-}
-
-impl Default for Params {
-    fn default() -> Self {
-        Params {
-            graph: GraphParams::default(),
-            // Each factorisation also serves the next iteration: the same accuracy, fusion 1.1
-            // to 1.3x faster (see `SolverParams::reuse_factorisation` and the README's "Speed").
-            solver: SolverParams {
-                reuse_factorisation: 1,
-                ..SolverParams::default()
-            },
-            solver_kind: SolverKind::Decoupled,
-            decoupled: DecoupledParams::default(),
-            stride: 4,
-            normal_max_step_mm: 3.0,
-            visible_distance_mm: 5.0,
-            visible_angle_deg: 60.0,
-            fuse_distance_mm: 2.0,
-            fuse_angle_deg: 30.0,
-            max_weight: 20.0,
-            stable_weight: 3.0,
-            unstable_frames: 10,
-            max_surfels: 400_000,
-            max_nodes: 20_000,
-            correspondences: CorrParams::default(),
-        }
-    }
-}
-
-impl Params {
-    fn check(&self) -> Result<(), BuildError> {
-        self.graph
-            .validate()
-            .map_err(|m| BuildError::param("graph", m))?;
-        self.solver
-            .validate()
-            .map_err(|m| BuildError::param("solver", m))?;
-        if self.stride == 0 {
-            return Err(BuildError::param("stride", "must be at least 1"));
-        }
-        for (name, v) in [
-            ("normal_max_step_mm", self.normal_max_step_mm as f64),
-            ("visible_distance_mm", self.visible_distance_mm),
-            ("fuse_distance_mm", self.fuse_distance_mm),
-            ("max_weight", self.max_weight as f64),
-        ] {
-            if v.is_nan() || v <= 0.0 {
-                return Err(BuildError::param(
-                    name,
-                    format!("must be positive, got {v}"),
-                ));
-            }
-        }
-        for (name, v) in [
-            ("visible_angle_deg", self.visible_angle_deg),
-            ("fuse_angle_deg", self.fuse_angle_deg),
-        ] {
-            if !(v > 0.0 && v <= 180.0) {
-                return Err(BuildError::param(
-                    name,
-                    format!("must lie in (0, 180], got {v}"),
-                ));
-            }
-        }
-        if self.max_surfels == 0 {
-            return Err(BuildError::param("max_surfels", "must be at least 1"));
-        }
-        if self.max_nodes == 0 {
-            return Err(BuildError::param("max_nodes", "must be at least 1"));
-        }
-        self.correspondences
-            .validate()
-            .map_err(|m| BuildError::param("correspondences", m))?;
-        Ok(())
-    }
-}
 
 /// The canonical model and its graph.
 #[derive(Default)]
