@@ -14,6 +14,9 @@ use rayon::prelude::*;
 /// Points per chunk (fixed: the sums must not depend on the thread count).
 const CHUNK: usize = 1024;
 
+/// Points per group within a chunk: projected together, then their scan pixels loaded together.
+const GROUP: usize = 32;
+
 /// A projective association: model point i meets scan point `q` with normal `n` (camera frame).
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Assoc {
@@ -95,58 +98,74 @@ impl Pass {
                 .par_chunks_mut(CHUNK)
                 .enumerate()
                 .map(|(ci, out)| {
-                    let (mut c_new, mut c_old, mut found) = (0.0, 0.0, Vec::new());
-                    for (k, p_out) in out.iter_mut().enumerate() {
-                        let i = ci * CHUNK + k;
-                        let b = &model.bindings[i];
-                        let p = (cfw * Point3::from(graph.warp_point(&model.points[i], b))).coords;
-                        *p_out = p;
-                        if let Some(field) = problem.field {
-                            if let Some((d, _)) = field.sample(&p) {
-                                let fc = wf * params.robust.weight_cost(d.abs(), c).1;
-                                c_new += fc;
-                                c_old += fc;
+                    let (mut c_new, mut c_old) = (0.0, 0.0);
+                    let mut found = Vec::with_capacity(if scan.is_some() { out.len() } else { 0 });
+                    // Runs of GROUP points in three steps: warp and project each; load the scan's
+                    // vertex and normal at every pixel hit (independent loads, so their cache
+                    // misses overlap: one at a time, these loads were most of the pass); then
+                    // the costs and the association, point by point in order as before.
+                    let mut pix = [None; GROUP];
+                    let mut at = [([0f32; 3], [0f32; 3]); GROUP];
+                    for (gi, group) in out.chunks_mut(GROUP).enumerate() {
+                        let i0 = ci * CHUNK + gi * GROUP;
+                        for (k, p_out) in group.iter_mut().enumerate() {
+                            let i = i0 + k;
+                            let p = (cfw
+                                * Point3::from(
+                                    graph.warp_point(&model.points[i], &model.bindings[i]),
+                                ))
+                            .coords;
+                            *p_out = p;
+                            pix[k] = scan.and_then(|scan| scan.intrinsics.pixel(&p));
+                        }
+                        if let Some(scan) = scan {
+                            for k in 0..group.len() {
+                                if let Some(idx) = pix[k] {
+                                    at[k] = (scan.vertices[idx], scan.normals[idx]);
+                                }
                             }
                         }
-                        if let Some((at, assoc)) = old_at {
-                            if let Some(a) = at.get(i).and_then(|&k| assoc.get(k as usize)) {
-                                c_old += projective_cost(&p, a, params);
+                        for (k, p) in group.iter().enumerate() {
+                            let i = i0 + k;
+                            if let Some(field) = problem.field {
+                                if let Some((d, _)) = field.sample(p) {
+                                    let fc = wf * params.robust.weight_cost(d.abs(), c).1;
+                                    c_new += fc;
+                                    c_old += fc;
+                                }
                             }
-                        }
-                        let Some(scan) = scan else { continue };
-                        if p.z.is_nan() || p.z <= 1e-6 {
-                            continue;
-                        }
-                        let k = scan.intrinsics;
-                        let (w, h) = (k.width as usize, k.height as usize);
-                        let u = (k.fx * p.x / p.z + k.cx).round();
-                        let v = (k.fy * p.y / p.z + k.cy).round();
-                        if !(u >= 0.0 && v >= 0.0 && (u as usize) < w && (v as usize) < h) {
-                            continue;
-                        }
-                        let idx = v as usize * w + u as usize;
-                        let (q, sn) = (scan.vertices[idx], scan.normals[idx]);
-                        if !q.iter().chain(sn.iter()).all(|c| c.is_finite()) {
-                            continue;
-                        }
-                        let q = Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64);
-                        let sn = Vector3::new(sn[0] as f64, sn[1] as f64, sn[2] as f64);
-                        if (p - q).norm_squared() > max_d2 {
-                            continue;
-                        }
-                        if let Some(mn) = model.normals.get(i) {
-                            let nc = rot_cw * graph.warp_normal(mn, b, nm);
-                            if nc.dot(&sn) < cos_max {
+                            if let Some((at_old, assoc)) = old_at {
+                                if let Some(a) = at_old.get(i).and_then(|&k| assoc.get(k as usize))
+                                {
+                                    c_old += projective_cost(p, a, params);
+                                }
+                            }
+                            if pix[k].is_none() {
                                 continue;
                             }
+                            let (q, sn) = at[k];
+                            if !q.iter().chain(sn.iter()).all(|c| c.is_finite()) {
+                                continue;
+                            }
+                            let q = Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64);
+                            let sn = Vector3::new(sn[0] as f64, sn[1] as f64, sn[2] as f64);
+                            if (p - q).norm_squared() > max_d2 {
+                                continue;
+                            }
+                            if let Some(mn) = model.normals.get(i) {
+                                let nc = rot_cw * graph.warp_normal(mn, &model.bindings[i], nm);
+                                if nc.dot(&sn) < cos_max {
+                                    continue;
+                                }
+                            }
+                            let a = Assoc {
+                                i: i as u32,
+                                q,
+                                n: sn,
+                            };
+                            c_new += projective_cost(p, &a, params);
+                            found.push(a);
                         }
-                        let a = Assoc {
-                            i: i as u32,
-                            q,
-                            n: sn,
-                        };
-                        c_new += projective_cost(&p, &a, params);
-                        found.push(a);
                     }
                     (c_new, c_old, found)
                 }),

@@ -124,31 +124,42 @@ pub fn visible_points(
     let rot = cfw.rotation.to_rotation_matrix();
     let nm = graph.normal_matrices();
     let cos_max = max_angle_deg.to_radians().cos();
-    let (w, h) = (k.width as usize, k.height as usize);
-    (0..points.len() as u32)
-        .into_par_iter()
-        .filter(|&i| {
-            let i = i as usize;
-            let p = cfw * Point3::from(graph.warp_point(&points[i], &bindings[i]));
-            if p.z.is_nan() || p.z <= 1e-6 {
-                return false;
+    // Runs of GROUP points: warped and projected, then the scan read at every pixel hit (the
+    // independent loads let their cache misses overlap), then tested in order.
+    const GROUP: usize = 32;
+    points
+        .par_chunks(1024)
+        .enumerate()
+        .flat_map_iter(|(ci, chunk)| {
+            let mut keep = Vec::new();
+            let mut at = [(Point3::origin(), None, [0f32; 3], [0f32; 3]); GROUP];
+            for (gi, group) in chunk.chunks(GROUP).enumerate() {
+                let i0 = ci * 1024 + gi * GROUP;
+                for (j, v) in group.iter().enumerate() {
+                    let p = cfw * Point3::from(graph.warp_point(v, &bindings[i0 + j]));
+                    at[j] = (p, k.pixel(&p.coords), [0.0; 3], [0.0; 3]);
+                }
+                for a in at[..group.len()].iter_mut() {
+                    if let Some(idx) = a.1 {
+                        (a.2, a.3) = (vertices[idx], scan_normals[idx]);
+                    }
+                }
+                for (j, &(p, idx, q, n)) in at[..group.len()].iter().enumerate() {
+                    let i = i0 + j;
+                    if idx.is_none() || !q.iter().chain(&n).all(|c| c.is_finite()) {
+                        continue;
+                    }
+                    let q = Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64);
+                    if (p.coords - q).norm() > max_distance_mm {
+                        continue;
+                    }
+                    let nc = rot * graph.warp_normal(&normals[i], &bindings[i], &nm);
+                    if nc.dot(&Vector3::new(n[0] as f64, n[1] as f64, n[2] as f64)) >= cos_max {
+                        keep.push(i as u32);
+                    }
+                }
             }
-            let u = (k.fx * p.x / p.z + k.cx).round();
-            let v = (k.fy * p.y / p.z + k.cy).round();
-            if !(u >= 0.0 && v >= 0.0 && (u as usize) < w && (v as usize) < h) {
-                return false;
-            }
-            let idx = v as usize * w + u as usize;
-            let (q, n) = (vertices[idx], scan_normals[idx]);
-            if !q.iter().chain(&n).all(|c| c.is_finite()) {
-                return false;
-            }
-            let q = Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64);
-            if (p.coords - q).norm() > max_distance_mm {
-                return false;
-            }
-            let nc = rot * graph.warp_normal(&normals[i], &bindings[i], &nm);
-            nc.dot(&Vector3::new(n[0] as f64, n[1] as f64, n[2] as f64)) >= cos_max
+            keep
         })
         .collect()
 }

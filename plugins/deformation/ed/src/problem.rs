@@ -24,6 +24,24 @@ pub struct Intrinsics {
     pub height: u32,
 }
 
+impl Intrinsics {
+    /// The pixel (row-major index) that camera-frame point `p` projects to, rounded to the
+    /// nearest; none when it is behind the camera (or NaN) or outside the image.
+    #[inline]
+    pub fn pixel(&self, p: &Vector3<f64>) -> Option<usize> {
+        if p.z.is_nan() || p.z <= 1e-6 {
+            return None;
+        }
+        let (w, h) = (self.width as usize, self.height as usize);
+        let u = (self.fx * p.x / p.z + self.cx).round();
+        let v = (self.fy * p.y / p.z + self.cy).round();
+        if !(u >= 0.0 && v >= 0.0 && (u as usize) < w && (v as usize) < h) {
+            return None;
+        }
+        Some(v as usize * w + u as usize)
+    }
+}
+
 /// The live observation for projective association: vertex and normal maps in the camera frame,
 /// row-major, NaN where invalid.
 #[derive(Clone, Copy, Debug)]
