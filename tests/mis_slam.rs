@@ -22,10 +22,15 @@ fn run(sets: &[&str], name: &str) -> std::collections::BTreeMap<String, f64> {
         "select",
         "solve",
         "solve.factor",
+        "solve.prepare",
+        "solve.level2",
+        "select.corr",
         "fuse",
         "add",
         "grow",
         "output",
+        "output.deform",
+        "output.anchor",
     ] {
         assert!(t.contains_key(&format!("fusion.{stage}")), "fusion.{stage}");
     }

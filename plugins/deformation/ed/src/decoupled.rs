@@ -83,6 +83,7 @@ impl DecoupledInfo {
             ms_associate: a.ms_associate + b.ms_associate,
             ms_assemble: a.ms_assemble + b.ms_assemble,
             ms_factor: a.ms_factor + b.ms_factor,
+            ms_prepare: a.ms_prepare + b.ms_prepare,
             ms_total: a.ms_total + b.ms_total,
         }
     }

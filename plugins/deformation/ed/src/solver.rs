@@ -52,6 +52,9 @@ pub struct Info {
     pub ms_assemble: f64,
     /// Numeric factorisation and triangular solves, ms.
     pub ms_factor: f64,
+    /// The pattern key, the symbolic factorisation when the pattern changed, and the zeroing of
+    /// the system before each assembly, ms.
+    pub ms_prepare: f64,
     /// Whole solve, ms.
     pub ms_total: f64,
 }
@@ -709,9 +712,11 @@ impl Solver {
             }
         }
         let builds0 = self.system.symbolic_builds;
+        let tp = Instant::now();
         self.set_motion_reference(graph, problem, set, params);
         let key = self.pattern(graph, problem, set);
         self.system.prepare(graph.len(), &key)?;
+        info.ms_prepare += tp.elapsed().as_secs_f64() * 1e3;
         let ta = Instant::now();
         if set.data {
             self.data.build(&self.system, problem);
@@ -726,7 +731,9 @@ impl Solver {
         let mut reuses_left = 0;
         for _ in 0..params.max_iterations {
             info.iterations += 1;
+            let tp = Instant::now();
             self.system.prepare(graph.len(), &key)?;
+            info.ms_prepare += tp.elapsed().as_secs_f64() * 1e3;
             // With the factorisation kept from the iteration before, the first attempt needs the
             // gradient only (the blocks are assembled if that step is rejected).
             let mut grad_only = reuses_left > 0 && self.system.is_factored();
@@ -751,7 +758,9 @@ impl Solver {
                 let reuse = attempt == 0 && grad_only;
                 if attempt > 0 && grad_only {
                     grad_only = false;
+                    let tp = Instant::now();
                     self.system.prepare(graph.len(), &key)?;
+                    info.ms_prepare += tp.elapsed().as_secs_f64() * 1e3;
                     let tb = Instant::now();
                     self.assemble(graph, problem, pose, set, params, Assembly::Full);
                     info.ms_assemble += tb.elapsed().as_secs_f64() * 1e3;

@@ -297,6 +297,7 @@ impl SurfelNode {
             );
             self.subset
                 .gather(&visible, &m.canon, &m.normals, &m.bindings);
+            let t_corr = std::time::Instant::now();
             let corrs = self
                 .corr
                 .correspondences(
@@ -328,8 +329,10 @@ impl SurfelNode {
                 correspondences: &corrs,
                 pose_prior: pose,
             };
+            st.times
+                .push(("select.corr", t_corr.elapsed().as_secs_f64() * 1e3));
             st.lap("select");
-            let (info, _) = self
+            let (info, decoupled) = self
                 .engine
                 .solve(
                     frame.index,
@@ -345,7 +348,11 @@ impl SurfelNode {
                 ("solve.associate", info.ms_associate),
                 ("solve.assemble", info.ms_assemble),
                 ("solve.factor", info.ms_factor),
+                ("solve.prepare", info.ms_prepare),
             ]);
+            if let Some(d) = decoupled {
+                st.times.push(("solve.level2", d.level2.ms_total));
+            }
             metrics
                 .values
                 .insert("fusion.visible".into(), visible.len() as f64);
@@ -578,6 +585,7 @@ impl SurfelNode {
             return Err(NodeError::msg("no graph"));
         };
         let m = &self.model;
+        let t_out = std::time::Instant::now();
         let (mut live, mut live_n) = (Vec::new(), Vec::new());
         graph.deform(
             &m.canon,
@@ -586,6 +594,9 @@ impl SurfelNode {
             &mut live,
             &mut live_n,
         );
+        st.times
+            .push(("output.deform", t_out.elapsed().as_secs_f64() * 1e3));
+        let t_anchor = std::time::Instant::now();
         // This frame's keypoints anchored for the next frame's correspondences (none after a
         // lost frame: its pose is not the scope's).
         self.corr.anchor(
@@ -602,6 +613,8 @@ impl SurfelNode {
             &k,
             &self.p.correspondences,
         );
+        st.times
+            .push(("output.anchor", t_anchor.elapsed().as_secs_f64() * 1e3));
         for (key, v) in [
             ("fusion.surfels", m.len() as f64),
             ("fusion.nodes", graph.len() as f64),

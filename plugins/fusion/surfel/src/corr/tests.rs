@@ -491,3 +491,78 @@ fn bad_parameters_are_named() {
     };
     assert!(p.validate().unwrap_err().contains("max_anchors"));
 }
+
+/// The closest point within `radius` of `q` by the grid, against all points; ties (equal
+/// distances) cannot arise with these random points.
+fn closest(grid: &CellGrid, pts: &[Vector3<f64>], q: &Vector3<f64>, radius: f64) -> Option<u32> {
+    let mut best = (radius * radius, None);
+    for s in grid.around(q) {
+        let d2 = (pts[s as usize] - q).norm_squared();
+        if d2 <= best.0 {
+            best = (d2, Some(s));
+        }
+    }
+    best.1
+}
+
+#[test]
+fn the_cell_grid_finds_what_a_search_of_every_point_finds() {
+    let mut seed = 0x2545_f491_4f6c_dd1du64;
+    let mut rnd = move || {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        (seed >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let radius = 2.0;
+    // 3,000 points in a 60 x 40 x 20 mm slab; some outside the box the grid covers.
+    let pts: Vec<Vector3<f64>> = (0..3000)
+        .map(|_| Vector3::new(60.0 * rnd() - 5.0, 40.0 * rnd(), 20.0 * rnd() + 50.0))
+        .collect();
+    let (lo, hi) = (Vector3::new(0.0, 0.0, 50.0), Vector3::new(50.0, 40.0, 70.0));
+    // A box the size of the points' (cells of `radius`), and one reaching 10 m away (a stray
+    // keypoint), whose cells must grow to keep the grid small.
+    for far in [hi, Vector3::new(10_000.0, 40.0, 70.0)] {
+        let mut grid = CellGrid::default();
+        grid.build(&pts, lo, far, radius);
+        assert!(grid.cell >= radius);
+        let n_cells: usize = grid.dims.iter().product();
+        assert!(
+            n_cells <= (CELLS_PER_POINT * pts.len()).max(MIN_CELLS),
+            "{n_cells} cells"
+        );
+        if far == hi {
+            assert_eq!(grid.cell, radius);
+        } else {
+            assert!(grid.cell >= 8.0 * radius, "cell {}", grid.cell);
+        }
+        let inside = |p: &Vector3<f64>| (0..3).all(|i| p[i] >= lo[i] && p[i] <= far[i]);
+        // Every point inside the box once, in ascending order within a cell.
+        let mut binned: Vec<u32> = grid.order.clone();
+        binned.sort_unstable();
+        let want: Vec<u32> = (0..pts.len() as u32)
+            .filter(|&s| inside(&pts[s as usize]))
+            .collect();
+        assert_eq!(binned, want);
+        let mut found = 0;
+        for _ in 0..500 {
+            let q = Vector3::new(
+                radius + (50.0 - 2.0 * radius) * rnd(),
+                radius + (40.0 - 2.0 * radius) * rnd(),
+                50.0 + radius + (20.0 - 2.0 * radius) * rnd(),
+            );
+            let brute = (0..pts.len() as u32)
+                .filter(|&s| inside(&pts[s as usize]))
+                .map(|s| ((pts[s as usize] - q).norm_squared(), s))
+                .filter(|&(d2, _)| d2 <= radius * radius)
+                .min_by(|a, b| a.0.total_cmp(&b.0))
+                .map(|(_, s)| s);
+            assert_eq!(closest(&grid, &pts, &q, radius), brute, "query {q:?}");
+            found += brute.is_some() as usize;
+        }
+        assert!(
+            found > 100,
+            "{found} of 500 queries have a point within the radius"
+        );
+    }
+}
