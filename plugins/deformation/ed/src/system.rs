@@ -56,6 +56,67 @@ pub struct PatternKey {
     pub links: Vec<(u32, u32)>,
 }
 
+impl PatternKey {
+    /// Whether a system laid out for `self` holds every block `other` asks for: the same
+    /// unknowns and eliminations, and `other`'s coupled pairs among `self`'s. The blocks `other`
+    /// does not couple are then assembled as zeros, and the symbolic factorisation serves.
+    pub fn covers(&self, other: &PatternKey) -> bool {
+        if self.free != other.free
+            || self.pose != other.pose
+            || self.eliminated != other.eliminated
+            || self.links != other.links
+        {
+            return false;
+        }
+        // Both sorted: a merge.
+        let mut mine = self.pairs.iter();
+        other.pairs.iter().all(|p| mine.any(|q| q == p))
+    }
+
+    /// The pattern to build for `other` after `self`: with the same unknowns, the union of
+    /// their coupled pairs (the visible set moves a little from frame to frame and couples the
+    /// same nodes now and then: the union soon covers the frames to come, and each symbolic
+    /// factorisation serves many frames); otherwise `other` itself.
+    pub fn widened(&self, other: &PatternKey) -> PatternKey {
+        if self.free != other.free
+            || self.pose != other.pose
+            || self.eliminated != other.eliminated
+            || self.links != other.links
+        {
+            return other.clone();
+        }
+        let mut pairs = Vec::with_capacity(self.pairs.len().max(other.pairs.len()));
+        let (mut a, mut b) = (self.pairs.iter().peekable(), other.pairs.iter().peekable());
+        loop {
+            let next = match (a.peek(), b.peek()) {
+                (Some(&&x), Some(&&y)) if x == y => {
+                    a.next();
+                    b.next();
+                    x
+                }
+                (Some(&&x), Some(&&y)) if x < y => {
+                    a.next();
+                    x
+                }
+                (_, Some(&&y)) => {
+                    b.next();
+                    y
+                }
+                (Some(&&x), None) => {
+                    a.next();
+                    x
+                }
+                (None, None) => break,
+            };
+            pairs.push(next);
+        }
+        PatternKey {
+            pairs,
+            ..other.clone()
+        }
+    }
+}
+
 /// The assembled system and its factorisation workspace.
 pub struct BlockSystem {
     key: PatternKey,
@@ -143,11 +204,14 @@ impl BlockSystem {
         self.nb
     }
 
-    /// Sets the pattern (reusing everything when it equals the previous one) and zeroes the system.
+    /// Sets the pattern and zeroes the system. The pattern laid out before (and its symbolic
+    /// factorisation) serves while it covers `key` ([`PatternKey::covers`]); otherwise a new one is
+    /// built, for `key` widened by the pairs before ([`PatternKey::widened`]).
     pub fn prepare(&mut self, n_nodes: usize, key: &PatternKey) -> Result<(), String> {
-        if *key != self.key || self.symbolic.is_none() || self.slot.len() != n_nodes {
+        if !self.key.covers(key) || self.symbolic.is_none() || self.slot.len() != n_nodes {
             self.factored = false;
-            self.build_pattern(n_nodes, key.clone())?;
+            let key = self.key.widened(key);
+            self.build_pattern(n_nodes, key)?;
         }
         self.blocks.iter_mut().for_each(|b| b.fill(0.0));
         self.pose_cross.iter_mut().for_each(|b| b.fill(0.0));

@@ -18,6 +18,17 @@ impl Rng {
 /// chords, data points binding pairs of the data nodes, a PSD diagonal per node (E_rot's
 /// place), and the pose coupled through the data nodes. Returns it and the node count.
 fn random_system(pose: bool, eliminate: bool, rng: &mut Rng) -> BlockSystem {
+    random_system_laid_out(pose, eliminate, &[], rng)
+}
+
+/// [`random_system`] in a system laid out first for its pattern with `extra` pairs too (which
+/// then covers it: the blocks of `extra` stay zero).
+fn random_system_laid_out(
+    pose: bool,
+    eliminate: bool,
+    extra: &[(u32, u32)],
+    rng: &mut Rng,
+) -> BlockSystem {
     const N: u32 = 14;
     let data_nodes: Vec<u32> = vec![0, 1, 2, 5, 9];
     let mut edges = Vec::new();
@@ -56,7 +67,16 @@ fn random_system(pose: bool, eliminate: bool, rng: &mut Rng) -> BlockSystem {
         links,
     };
     let mut sys = BlockSystem::default();
+    if !extra.is_empty() {
+        let mut wide = key.clone();
+        wide.pairs.extend_from_slice(extra);
+        wide.pairs.sort_unstable();
+        wide.pairs.dedup();
+        sys.prepare(N as usize, &wide).unwrap();
+        assert!(wide.covers(&key) && !key.covers(&wide));
+    }
     sys.prepare(N as usize, &key).unwrap();
+    assert_eq!(sys.symbolic_builds, 1, "one pattern laid out");
     let slot = sys.slot.clone();
     let s = |j: u32| slot[j as usize];
     const E4: [f64; 4] = [0.0, 0.0, 0.0, 1.0];
@@ -91,7 +111,13 @@ fn random_system(pose: bool, eliminate: bool, rng: &mut Rng) -> BlockSystem {
         sys.add_diag(s(j), &h);
     }
     let nb = sys.blocks_solved();
-    for x in sys.grad.iter_mut() {
+    // The gradient drawn node by node (not in block order, which depends on the layout).
+    for j in 0..N {
+        for q in 0..12 {
+            sys.grad[12 * s(j) as usize + q] = rng.next();
+        }
+    }
+    for x in sys.grad[12 * N as usize..].iter_mut() {
         *x = rng.next();
     }
     if pose {
@@ -240,4 +266,60 @@ fn a_link_outside_the_pairs_is_an_error_not_a_panic() {
     };
     let err = BlockSystem::default().prepare(3, &key).unwrap_err();
     assert!(err.contains("not among the pairs"), "{err}");
+}
+
+#[test]
+fn a_wider_pattern_serves_and_widening_takes_the_union() {
+    // Pairs among the data nodes (0, 1, 2, 5, 9) that no edge or point couples.
+    let extra = [(1, 5), (1, 9), (2, 9)];
+    let mut rng = Rng(0x1234_5678_9abc_def1);
+    for pose in [false, true] {
+        for eliminate in [false, true] {
+            let seed = Rng(rng.0);
+            let mut wide = random_system_laid_out(pose, eliminate, &extra, &mut Rng(seed.0));
+            let mut exact = random_system(pose, eliminate, &mut Rng(seed.0));
+            rng.next();
+            assert!(wide.key.pairs.len() == exact.key.pairs.len() + extra.len());
+            for (sys, what) in [(&mut wide, "wider"), (&mut exact, "exact")] {
+                let want = dense_solve(sys, 0.05, 1e-6).unwrap();
+                let mut dx = Vec::new();
+                assert!(sys.solve(0.05, 1e-6, &mut dx).unwrap());
+                let scale = want.iter().fold(1.0f64, |m, x| m.max(x.abs()));
+                let err = dx
+                    .iter()
+                    .zip(&want)
+                    .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+                assert!(err <= 1e-9 * scale, "{what}, pose {pose}: {err:e}");
+            }
+            // The same matrix in both layouts (their block orders may differ): the same step,
+            // node by node.
+            let (mut a, mut b) = (Vec::new(), Vec::new());
+            assert!(wide.solve(0.05, 1e-6, &mut a).unwrap());
+            assert!(exact.solve(0.05, 1e-6, &mut b).unwrap());
+            for j in 0..14 {
+                let (sa, sb) = (wide.slot[j] as usize, exact.slot[j] as usize);
+                for q in 0..12 {
+                    let (x, y) = (a[12 * sa + q], b[12 * sb + q]);
+                    assert!(
+                        (x - y).abs() <= 1e-9 * x.abs().max(1.0),
+                        "node {j}: {x} vs {y}"
+                    );
+                }
+            }
+        }
+    }
+    // Widening: the union when the unknowns match, the new key alone when they do not.
+    let key = |free: Vec<u32>, pairs: Vec<(u32, u32)>| PatternKey {
+        free,
+        pairs,
+        ..Default::default()
+    };
+    let a = key(vec![0, 1, 2, 3], vec![(0, 1), (1, 3)]);
+    let b = key(vec![0, 1, 2, 3], vec![(0, 2), (1, 3), (2, 3)]);
+    let u = a.widened(&b);
+    assert_eq!(u.pairs, vec![(0, 1), (0, 2), (1, 3), (2, 3)]);
+    assert!(u.covers(&a) && u.covers(&b) && !a.covers(&b));
+    let c = key(vec![0, 1, 2], vec![(0, 1)]);
+    assert_eq!(u.widened(&c), c);
+    assert!(!u.covers(&c));
 }
