@@ -282,34 +282,40 @@ impl SurfelNode {
                 return Err(NodeError::msg("no graph"));
             };
             let m = &mut self.model;
-            // 2. Visible surfels and the warp.
-            let visible = visible_points(
-                graph,
-                &m.canon,
-                &m.normals,
-                &m.bindings,
-                &pose,
-                &k,
-                vertices,
-                scan_normals,
-                self.p.visible_distance_mm,
-                self.p.visible_angle_deg,
+            // 2. Visible surfels and the warp; beside them, the keypoints matched to the anchors.
+            let (graph_ref, corr, corr_params) = (&*graph, &mut self.corr, &self.p.correspondences);
+            let (visible, (corrs, ms_corr)) = rayon::join(
+                || {
+                    visible_points(
+                        graph_ref,
+                        &m.canon,
+                        &m.normals,
+                        &m.bindings,
+                        &pose,
+                        &k,
+                        vertices,
+                        scan_normals,
+                        self.p.visible_distance_mm,
+                        self.p.visible_angle_deg,
+                    )
+                },
+                || {
+                    let t = std::time::Instant::now();
+                    let c = corr.correspondences(
+                        frame.index,
+                        features,
+                        &pose,
+                        &k,
+                        (vertices, scan_normals),
+                        graph_ref,
+                        corr_params,
+                    );
+                    (c, t.elapsed().as_secs_f64() * 1e3)
+                },
             );
+            let corrs = corrs.map_err(NodeError::msg)?;
             self.subset
                 .gather(&visible, &m.canon, &m.normals, &m.bindings);
-            let t_corr = std::time::Instant::now();
-            let corrs = self
-                .corr
-                .correspondences(
-                    frame.index,
-                    features,
-                    &pose,
-                    &k,
-                    (vertices, scan_normals),
-                    graph,
-                    &self.p.correspondences,
-                )
-                .map_err(NodeError::msg)?;
             metrics
                 .values
                 .insert("fusion.correspondences".into(), corrs.len() as f64);
@@ -329,8 +335,7 @@ impl SurfelNode {
                 correspondences: &corrs,
                 pose_prior: pose,
             };
-            st.times
-                .push(("select.corr", t_corr.elapsed().as_secs_f64() * 1e3));
+            st.times.push(("select.corr", ms_corr));
             st.lap("select");
             let (info, decoupled) = self
                 .engine
