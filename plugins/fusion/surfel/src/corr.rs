@@ -471,11 +471,14 @@ impl CorrTracker {
         // Over the cap, those unseen longest and then matched least often go: the tissue in
         // view keeps its anchors, and new tissue can still get some.
         if map.len() > p.max_anchors {
+            // The first `max_anchors` in that order (ties to the older anchor), found by a
+            // selection rather than a sort of all of them, then kept in their order.
             let mut order: Vec<usize> = (0..map.len()).collect();
-            order.sort_by_key(|&i| {
+            order.select_nth_unstable_by_key(p.max_anchors, |&i| {
                 (
                     std::cmp::Reverse(map.last_seen[i]),
                     std::cmp::Reverse(map.matched[i]),
+                    i,
                 )
             });
             order.truncate(p.max_anchors);
