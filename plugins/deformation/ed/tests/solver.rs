@@ -612,3 +612,63 @@ fn eliminating_the_affine_parts_of_unseen_nodes_leaves_the_batch_solution_unchan
         (pe.translation.vector - pf.translation.vector).norm() + pe.rotation.angle_to(&pf.rotation);
     assert!(dp < 1e-9, "pose difference {dp:e}");
 }
+
+#[test]
+fn the_factorisation_on_several_threads_solves_alike() {
+    let Sheet {
+        points,
+        tris,
+        normals,
+        graph,
+        bindings,
+    } = Sheet::new(61, 41, 4.0);
+    let moved: Vec<Vector3<f64>> = points
+        .iter()
+        .map(|p| p + Vector3::new(0.3, -0.2, 0.5 + 0.002 * p.x * p.x))
+        .collect();
+    let maps = render(&moved, &tris, &Isometry3::identity());
+    let problem = Problem {
+        model: ModelPoints {
+            points: &points,
+            normals: &normals,
+            bindings: &bindings,
+        },
+        scan: Some(scan(&maps)),
+        field: None,
+        correspondences: &[],
+        pose_prior: Isometry3::identity(),
+    };
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(2)
+        .build()
+        .unwrap();
+    let run = |factor_threads: usize| {
+        pool.install(|| {
+            let mut g = graph.clone();
+            let mut pose = Isometry3::identity();
+            let params = SolverParams {
+                factor_threads,
+                ..Default::default()
+            };
+            let set = SolveSet::all(&g, false);
+            let info = Solver::default()
+                .solve(&mut g, &mut pose, &problem, &set, &params)
+                .unwrap();
+            (g.warp, info)
+        })
+    };
+    let (one, info) = run(1);
+    // Large enough for the parallel path (at least 384 unknowns), and the solve did its work.
+    assert!(12 * info.solved_nodes >= 384, "{} nodes", info.solved_nodes);
+    assert!(info.cost_after < 0.1 * info.cost_before, "{info:?}");
+    for threads in [2, 0] {
+        let (many, info_many) = run(threads);
+        let dev = one
+            .iter()
+            .flatten()
+            .zip(many.iter().flatten())
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        assert!(dev <= 1e-9, "{threads} threads: warps {dev:e} apart");
+        assert_eq!(info.iterations, info_many.iterations);
+    }
+}
