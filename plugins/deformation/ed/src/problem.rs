@@ -331,12 +331,6 @@ pub struct SolverParams {
     /// cost rejects is taken again from a fresh factorisation, so the cost still falls at every
     /// accepted iteration. 0: a factorisation every iteration.
     pub reuse_factorisation: usize,
-    /// Threads of the numeric Cholesky factorisation of a system of at least 384 unknowns
-    /// (faer's parallel supernodal factorisation, on the current thread pool: the level's in a
-    /// pipelined graph): 1 factorises on the calling thread, 0 takes all the pool's threads.
-    /// The same solution on any number, to rounding. faer's workers keep spinning after each
-    /// factorisation: on 2 cores they slowed the factorisation and the stages beside it.
-    pub factor_threads: usize,
     /// Term weights.
     pub weights: Weights,
 }
@@ -356,7 +350,6 @@ impl Default for SolverParams {
             robust_scale_mm: 2.0,
             field_jacobian: FieldJacobian::Normal,
             reuse_factorisation: 0,
-            factor_threads: 1,
             weights: Weights::default(),
         }
     }

@@ -608,7 +608,6 @@ impl Solver {
     ) -> Result<DenseLinearization, String> {
         self.set_motion_reference(graph, problem, set, params);
         let key = self.pattern(graph, problem, set);
-        self.system.set_factor_threads(params.factor_threads);
         self.system.prepare(graph.len(), &key)?;
         if set.data {
             self.data.build(&self.system, problem);
@@ -713,7 +712,6 @@ impl Solver {
             }
         }
         let builds0 = self.system.symbolic_builds;
-        self.system.set_factor_threads(params.factor_threads);
         let tp = Instant::now();
         self.set_motion_reference(graph, problem, set, params);
         let key = self.pattern(graph, problem, set);

@@ -31,25 +31,6 @@ use crate::schur::{sym12, Elimination, Layout, KEEP_FULL, KEEP_T};
 
 /// The unknowns of a slot the reduced system keeps, in its 12-layout: the translation of an
 /// eliminated slot, all twelve (affine first) of one with data.
-/// Reduced systems at least this large may be factorised on several threads: below it the
-/// supernodes are too small for the threads to pay for their start.
-const PAR_MIN_DIM: usize = 384;
-
-/// The numeric factorisation's parallelism for a reduced system of dimension `n` with `threads`
-/// asked (0: the current rayon pool's).
-fn factor_par(n: usize, threads: usize) -> Par {
-    let threads = if threads == 0 {
-        rayon::current_num_threads()
-    } else {
-        threads
-    };
-    if n >= PAR_MIN_DIM && threads > 1 {
-        Par::rayon(threads)
-    } else {
-        Par::Seq
-    }
-}
-
 fn kept(eliminated: bool) -> &'static [usize] {
     if eliminated {
         &KEEP_T
@@ -169,10 +150,6 @@ pub struct BlockSystem {
     symbolic: Option<SymbolicCholesky<usize>>,
     l_values: Vec<f64>,
     scratch: MemBuffer,
-    /// Threads asked of the numeric factorisation ([`Self::set_factor_threads`]) and the
-    /// parallelism chosen with the pattern ([`factor_par`]).
-    factor_threads: usize,
-    par: Par,
     /// How many symbolic factorisations were computed (the reuse is tested through this).
     pub symbolic_builds: usize,
     /// Whether `l_values` and the elimination hold a numeric factorisation of the current
@@ -204,8 +181,6 @@ impl Default for BlockSystem {
             symbolic: None,
             l_values: Vec::new(),
             scratch: MemBuffer::new(faer::dyn_stack::StackReq::EMPTY),
-            factor_threads: 1,
-            par: Par::Seq,
             symbolic_builds: 0,
             factored: false,
         }
@@ -227,15 +202,6 @@ impl BlockSystem {
     /// Number of solved node blocks.
     pub fn blocks_solved(&self) -> usize {
         self.nb
-    }
-
-    /// Threads of the numeric factorisation (`SolverParams::factor_threads`: 0 the current
-    /// pool's); a change lays the pattern out again (its workspace depends on them).
-    pub fn set_factor_threads(&mut self, threads: usize) {
-        if threads != self.factor_threads {
-            self.factor_threads = threads;
-            self.symbolic = None;
-        }
     }
 
     /// Sets the pattern and zeroes the system. The pattern laid out before (and its symbolic
@@ -465,9 +431,8 @@ impl BlockSystem {
                 )
             );
             self.l_values = vec![0.0; s.len_val()];
-            self.par = factor_par(n, self.factor_threads);
             let req = s
-                .factorize_numeric_llt_scratch::<f64>(self.par, Default::default())
+                .factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default())
                 .or(s.solve_in_place_scratch::<f64>(1, Par::Seq));
             self.scratch =
                 MemBuffer::try_new(req).map_err(|_| "out of memory for the Cholesky workspace")?;
@@ -710,7 +675,7 @@ impl BlockSystem {
                 a,
                 Side::Upper,
                 Default::default(),
-                self.par,
+                Par::Seq,
                 stack,
                 Default::default(),
             )
