@@ -397,8 +397,9 @@ impl DataAssembly {
     /// Lists every coupling of the problem's points under its block (once per solve: the
     /// pattern of `sys` and the bindings must not change until the next call).
     pub(crate) fn build(&mut self, sys: &BlockSystem, problem: &Problem) {
-        let collect = |first: u32, bindings: &mut dyn Iterator<Item = &Binding>| {
-            let mut out = Vec::new();
+        let collect = |first: u32, bindings: &mut dyn ExactSizeIterator<Item = &Binding>| {
+            // A binding of k nodes couples k (k + 1) / 2 blocks.
+            let mut out = Vec::with_capacity(bindings.len() * MAX_K * (MAX_K + 1) / 2);
             let mut buf = [(0u32, Coupling::default()); 2 * MAX_K * MAX_K];
             for (k, b) in bindings.enumerate() {
                 let n = couplings_of(sys, b, first + k as u32, &mut buf);

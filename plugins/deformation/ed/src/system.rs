@@ -31,6 +31,10 @@ use crate::schur::{sym12, Elimination, Layout, KEEP_FULL, KEEP_T};
 
 /// The unknowns of a slot the reduced system keeps, in its 12-layout: the translation of an
 /// eliminated slot, all twelve (affine first) of one with data.
+/// Systems with at most this many node blocks a side look their blocks up in a dense table
+/// (4 MB at most) instead of searching the column ([`BlockSystem::find`]).
+const DENSE_LOOKUP_MAX: usize = 1024;
+
 fn kept(eliminated: bool) -> &'static [usize] {
     if eliminated {
         &KEEP_T
@@ -125,6 +129,9 @@ pub struct BlockSystem {
     nb: usize,
     col_start: Vec<usize>,
     rows: Vec<u32>,
+    /// Index of upper block (bi, bj) at `bi * nb + bj` (u32::MAX where none), when the system
+    /// has at most [`DENSE_LOOKUP_MAX`] blocks a side; else empty and [`Self::find`] searches.
+    lookup: Vec<u32>,
     /// Upper blocks, column-major 12x12.
     pub blocks: Vec<[f64; 144]>,
     /// Node-pose coupling, per block row, column-major 12x6.
@@ -165,6 +172,7 @@ impl Default for BlockSystem {
             nb: 0,
             col_start: vec![0],
             rows: Vec::new(),
+            lookup: Vec::new(),
             blocks: Vec::new(),
             pose_cross: Vec::new(),
             pose_block: [0.0; 36],
@@ -453,6 +461,20 @@ impl BlockSystem {
         self.koff = koff;
         self.blk_rowoff = blk_rowoff;
         self.elimination = elimination;
+        self.lookup.clear();
+        if nf <= DENSE_LOOKUP_MAX {
+            self.lookup.resize(nf * nf, u32::MAX);
+            for bj in 0..nf {
+                for (p, &bi) in rows
+                    .iter()
+                    .enumerate()
+                    .take(col_start[bj + 1])
+                    .skip(col_start[bj])
+                {
+                    self.lookup[bi as usize * nf + bj] = p as u32;
+                }
+            }
+        }
         self.col_start = col_start;
         self.rows = rows;
         self.col_ptr = col_ptr;
@@ -482,6 +504,12 @@ impl BlockSystem {
     /// Index of upper block (bi, bj), bi <= bj.
     #[inline]
     pub fn find(&self, bi: u32, bj: u32) -> usize {
+        if !self.lookup.is_empty() {
+            let p = self.lookup[bi as usize * self.nb + bj as usize];
+            if p != u32::MAX {
+                return p as usize;
+            }
+        }
         let list = &self.rows[self.col_start[bj as usize]..self.col_start[bj as usize + 1]];
         match list.binary_search(&bi) {
             Ok(p) => self.col_start[bj as usize] + p,

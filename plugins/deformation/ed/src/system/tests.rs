@@ -323,3 +323,32 @@ fn a_wider_pattern_serves_and_widening_takes_the_union() {
     assert_eq!(u.widened(&c), c);
     assert!(!u.covers(&c));
 }
+
+#[test]
+fn blocks_are_found_by_the_table_and_by_the_search_alike() {
+    // 50 nodes a side: the dense table; 1,100: beyond it, the column search.
+    for n in [50u32, 1100] {
+        let mut pairs: Vec<(u32, u32)> = (0..n - 1).map(|j| (j, j + 1)).collect();
+        pairs.extend((0..n - 7).map(|j| (j, j + 7)));
+        pairs.sort_unstable();
+        let key = PatternKey {
+            free: (0..n).collect(),
+            pairs: pairs.clone(),
+            ..Default::default()
+        };
+        let mut sys = BlockSystem::default();
+        sys.prepare(n as usize, &key).unwrap();
+        assert_eq!(sys.lookup.is_empty(), n as usize > DENSE_LOOKUP_MAX);
+        for (a, b) in pairs.into_iter().chain((0..n).map(|j| (j, j))) {
+            let (sa, sb) = (sys.slot[a as usize], sys.slot[b as usize]);
+            let (lo, hi) = (sa.min(sb), sa.max(sb));
+            let idx = sys.find(lo, hi);
+            let col = sys.col_start[hi as usize]..sys.col_start[hi as usize + 1];
+            assert!(
+                col.contains(&idx),
+                "n {n}: block ({lo}, {hi}) outside its column"
+            );
+            assert_eq!(sys.rows[idx], lo, "n {n}: block ({lo}, {hi})");
+        }
+    }
+}
