@@ -252,7 +252,7 @@ impl CellGrid {
         min_cell: f64,
     ) {
         let inside = |p: &Vector3<f64>| (0..3).all(|i| p[i] >= lo[i] && p[i] <= hi[i]);
-        let n_in = points.iter().filter(|p| inside(p)).count();
+        let n_in = points.par_iter().filter(|p| inside(p)).count();
         let cap = (CELLS_PER_POINT * n_in).max(MIN_CELLS);
         let ext = hi - lo;
         let dims_at = |h: f64| ext.map(|e| (e / h).floor() as usize + 1);
@@ -267,7 +267,7 @@ impl CellGrid {
         self.start.resize(n_cells + 1, 0);
         let mut cell_of = std::mem::take(&mut self.cell_of);
         cell_of.clear();
-        cell_of.extend(points.iter().map(|p| {
+        cell_of.par_extend(points.par_iter().map(|p| {
             if inside(p) {
                 self.index(self.coords(p)) as u32
             } else {
