@@ -234,6 +234,7 @@ pub struct CellGrid {
     start: Vec<u32>,
     order: Vec<u32>,
     cell_of: Vec<u32>,
+    next: Vec<u32>,
 }
 
 /// At most this many cells per binned point (and a floor for few points): a box much larger
@@ -285,10 +286,11 @@ impl CellGrid {
         }
         self.order.clear();
         self.order.resize(n_in, 0);
-        let mut next = self.start.clone();
+        self.next.clear();
+        self.next.extend_from_slice(&self.start);
         for (s, &c) in self.cell_of.iter().enumerate() {
             if c != u32::MAX {
-                let slot = &mut next[c as usize];
+                let slot = &mut self.next[c as usize];
                 self.order[*slot as usize] = s as u32;
                 *slot += 1;
             }
