@@ -211,69 +211,7 @@ impl Solver {
 
     /// Block pattern of `set`: edges between solved nodes and pairs of solved nodes that share a point.
     fn pattern(&self, graph: &EdGraph, problem: &Problem, set: &SolveSet) -> PatternKey {
-        let mut is_free = vec![false; graph.len()];
-        for &j in &set.free {
-            is_free[j as usize] = true;
-        }
-        let mut pairs = CoupledPairs::new(graph.len(), &set.free);
-        for &(j, k) in &set.reg_edges {
-            if is_free[j as usize] && is_free[k as usize] && j != k {
-                pairs.insert(j, k);
-            }
-        }
-        // Nodes some data term binds: their A couples to other nodes' A and to the pose.
-        let mut has_data = vec![false; graph.len()];
-        if set.data {
-            let mut add = |b: &Binding| {
-                for &x in &b.nodes[..b.len as usize] {
-                    has_data[x as usize] = true;
-                }
-                for a in 0..b.len as usize {
-                    for c in a + 1..b.len as usize {
-                        let (x, y) = (b.nodes[a], b.nodes[c]);
-                        if is_free[x as usize] && is_free[y as usize] && x != y {
-                            pairs.insert(x, y);
-                        }
-                    }
-                }
-            };
-            for b in problem.model.bindings {
-                add(b);
-            }
-            for c in problem.correspondences {
-                add(&c.binding);
-            }
-        }
-        let pairs = pairs.into_sorted();
-        // The rest have their A eliminated before the sparse factorisation (see
-        // [`crate::system`]): it reaches their own t and, through E_reg, the t of their edges' ends.
-        let eliminated: Vec<u32> = set
-            .free
-            .iter()
-            .copied()
-            .filter(|&j| !has_data[j as usize] && !self.full_factorisation)
-            .collect();
-        let mut links: Vec<(u32, u32)> = set
-            .reg_edges
-            .iter()
-            .copied()
-            .filter(|&(j, k)| {
-                j != k
-                    && is_free[j as usize]
-                    && is_free[k as usize]
-                    && !has_data[j as usize]
-                    && !self.full_factorisation
-            })
-            .collect();
-        links.sort_unstable();
-        links.dedup();
-        PatternKey {
-            free: set.free.clone(),
-            pairs,
-            pose: set.pose,
-            eliminated,
-            links,
-        }
+        pattern_key(graph, problem, set, self.full_factorisation)
     }
 
     /// Adds one point's residual rows: each row is (a, r, weight) with r = a . (p_cam - target)
@@ -714,16 +652,16 @@ impl Solver {
         let builds0 = self.system.symbolic_builds;
         let tp = Instant::now();
         self.set_motion_reference(graph, problem, set, params);
-        let key = self.pattern(graph, problem, set);
         // The first pass (the association at the start) needs no system: it runs beside the
-        // system's layout, whose symbolic factorisation (when the pattern changed) is serial.
-        // Each reports its own time, so the two overlap in `Info`.
+        // pattern key and the system's layout, whose symbolic factorisation (when the pattern
+        // changed) is serial. Each reports its own time, so the two overlap in `Info`.
         let mut cur = std::mem::take(&mut self.cur);
-        let system = &mut self.system;
-        let (prepared, ms_pass) = rayon::join(
+        let (system, full) = (&mut self.system, self.full_factorisation);
+        let ((key, prepared), ms_pass) = rayon::join(
             || {
+                let key = pattern_key(graph, problem, set, full);
                 let r = system.prepare(graph.len(), &key);
-                (r, tp.elapsed().as_secs_f64() * 1e3)
+                (key, (r, tp.elapsed().as_secs_f64() * 1e3))
             },
             || {
                 let ta = Instant::now();
@@ -892,5 +830,78 @@ impl Solver {
         info.symbolic_builds = self.system.symbolic_builds - builds0;
         info.ms_total = t0.elapsed().as_secs_f64() * 1e3;
         Ok(info)
+    }
+}
+
+/// Block pattern of `set` ([`Solver::pattern`]); `full_factorisation` keeps every node's affine
+/// part in the factorisation.
+fn pattern_key(
+    graph: &EdGraph,
+    problem: &Problem,
+    set: &SolveSet,
+    full_factorisation: bool,
+) -> PatternKey {
+    let mut is_free = vec![false; graph.len()];
+    for &j in &set.free {
+        is_free[j as usize] = true;
+    }
+    let mut pairs = CoupledPairs::new(graph.len(), &set.free);
+    for &(j, k) in &set.reg_edges {
+        if is_free[j as usize] && is_free[k as usize] && j != k {
+            pairs.insert(j, k);
+        }
+    }
+    // Nodes some data term binds: their A couples to other nodes' A and to the pose.
+    let mut has_data = vec![false; graph.len()];
+    if set.data {
+        let mut add = |b: &Binding| {
+            for &x in &b.nodes[..b.len as usize] {
+                has_data[x as usize] = true;
+            }
+            for a in 0..b.len as usize {
+                for c in a + 1..b.len as usize {
+                    let (x, y) = (b.nodes[a], b.nodes[c]);
+                    if is_free[x as usize] && is_free[y as usize] && x != y {
+                        pairs.insert(x, y);
+                    }
+                }
+            }
+        };
+        for b in problem.model.bindings {
+            add(b);
+        }
+        for c in problem.correspondences {
+            add(&c.binding);
+        }
+    }
+    let pairs = pairs.into_sorted();
+    // The rest have their A eliminated before the sparse factorisation (see
+    // [`crate::system`]): it reaches their own t and, through E_reg, the t of their edges' ends.
+    let eliminated: Vec<u32> = set
+        .free
+        .iter()
+        .copied()
+        .filter(|&j| !has_data[j as usize] && !full_factorisation)
+        .collect();
+    let mut links: Vec<(u32, u32)> = set
+        .reg_edges
+        .iter()
+        .copied()
+        .filter(|&(j, k)| {
+            j != k
+                && is_free[j as usize]
+                && is_free[k as usize]
+                && !has_data[j as usize]
+                && !full_factorisation
+        })
+        .collect();
+    links.sort_unstable();
+    links.dedup();
+    PatternKey {
+        free: set.free.clone(),
+        pairs,
+        pose: set.pose,
+        eliminated,
+        links,
     }
 }
