@@ -8,7 +8,7 @@
 
 use crate::graph::EdGraph;
 use crate::problem::{Problem, SolverParams};
-use misslam_framework::nalgebra::{Isometry3, Matrix3, Point3, Vector3};
+use misslam_framework::nalgebra::{Isometry3, Vector3};
 use rayon::prelude::*;
 
 /// Points per chunk (fixed: the sums must not depend on the thread count).
@@ -39,7 +39,6 @@ pub(crate) struct Pass {
     /// Projective cost with the previous association plus the field cost.
     pub(crate) cost_old: f64,
     chunks: Vec<(f64, f64, Vec<Assoc>)>,
-    normal_matrices: Vec<Matrix3<f64>>,
 }
 
 /// The projective term's cost of model point `p` (camera frame) against scan point `q`, normal `n`.
@@ -79,12 +78,8 @@ impl Pass {
             self.p_cam.clear();
             return;
         }
-        let cfw = pose.inverse();
-        let rot_cw = cfw.rotation.to_rotation_matrix();
-        if scan.is_some() {
-            graph.normal_matrices_into(&mut self.normal_matrices);
-        }
-        let nm = &self.normal_matrices;
+        // The warp and the map into the camera's frame, folded into each node.
+        let cam = graph.framed(&pose.inverse());
         let cos_max = params.max_normal_angle_deg.to_radians().cos();
         let max_d2 = params.max_distance_mm * params.max_distance_mm;
         let c = params.robust_scale_mm;
@@ -110,11 +105,7 @@ impl Pass {
                         let i0 = ci * CHUNK + gi * GROUP;
                         for (k, p_out) in group.iter_mut().enumerate() {
                             let i = i0 + k;
-                            let p = (cfw
-                                * Point3::from(
-                                    graph.warp_point(&model.points[i], &model.bindings[i]),
-                                ))
-                            .coords;
+                            let p = cam.point(&model.points[i], &model.bindings[i]);
                             *p_out = p;
                             pix[k] = scan.and_then(|scan| scan.intrinsics.pixel(&p));
                         }
@@ -153,7 +144,7 @@ impl Pass {
                                 continue;
                             }
                             if let Some(mn) = model.normals.get(i) {
-                                let nc = rot_cw * graph.warp_normal(mn, &model.bindings[i], nm);
+                                let nc = cam.normal(mn, &model.bindings[i]);
                                 if nc.dot(&sn) < cos_max {
                                     continue;
                                 }

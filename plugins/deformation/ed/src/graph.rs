@@ -13,7 +13,7 @@
 
 use crate::knn::GridIndex;
 use misslam_framework::geometry::arr3;
-use misslam_framework::nalgebra::{Matrix3, Rotation3, Vector3};
+use misslam_framework::nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Vector3};
 use rayon::prelude::*;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -148,7 +148,71 @@ pub fn translation(p: &[f64; 12]) -> Vector3<f64> {
     Vector3::new(p[3], p[7], p[11])
 }
 
+/// The warp followed by a rigid map `to` (into the camera's frame, say), folded into each node:
+/// `to * warp(v) = sum_j w_j (M_j v + c_j)`, with `M_j = R A_j` and `c_j = R (g_j + t_j - A_j
+/// g_j) + t`, as a binding's weights sum to one; and the warped unit normal turned by R, through
+/// `R A_j^-T`. Per point about half the arithmetic of the warp and then the map
+/// ([`EdGraph::framed`]).
+pub struct FramedWarp {
+    to: Isometry3<f64>,
+    m: Vec<Matrix3<f64>>,
+    c: Vec<Vector3<f64>>,
+    n: Vec<Matrix3<f64>>,
+}
+
+impl FramedWarp {
+    /// `to * warp(v)` for canonical point `v` bound by `b`.
+    #[inline]
+    pub fn point(&self, v: &Vector3<f64>, b: &Binding) -> Vector3<f64> {
+        if b.len == 0 {
+            return (self.to * Point3::from(*v)).coords;
+        }
+        let mut out = Vector3::zeros();
+        for (j, w) in b.iter() {
+            let j = j as usize;
+            out += w * (self.m[j] * v + self.c[j]);
+        }
+        out
+    }
+
+    /// `R * warp_normal(n)` for unit normal `n` bound by `b` ([`EdGraph::warp_normal`]).
+    #[inline]
+    pub fn normal(&self, n: &Vector3<f64>, b: &Binding) -> Vector3<f64> {
+        let turned = self.to.rotation * n;
+        if b.len == 0 {
+            return turned;
+        }
+        let mut out = Vector3::zeros();
+        for (j, w) in b.iter() {
+            out += w * (self.n[j as usize] * n);
+        }
+        out.try_normalize(1e-12).unwrap_or(turned)
+    }
+}
+
 impl EdGraph {
+    /// The warp followed by `to`, folded into each node ([`FramedWarp`]).
+    pub fn framed(&self, to: &Isometry3<f64>) -> FramedWarp {
+        let r = to.rotation.to_rotation_matrix().into_inner();
+        let mut f = FramedWarp {
+            to: *to,
+            m: Vec::with_capacity(self.len()),
+            c: Vec::with_capacity(self.len()),
+            n: Vec::with_capacity(self.len()),
+        };
+        for (p, g) in self.warp.iter().zip(&self.nodes) {
+            let a = affine(p);
+            f.m.push(r * a);
+            f.c.push(r * (g + translation(p) - a * g) + to.translation.vector);
+            let nm = a
+                .try_inverse()
+                .map(|m| m.transpose())
+                .unwrap_or_else(Matrix3::identity);
+            f.n.push(r * nm);
+        }
+        f
+    }
+
     /// Samples nodes on `points` (canonical frame); every warp starts at the identity.
     pub fn from_points(points: &[Vector3<f64>], params: GraphParams) -> Result<Self, String> {
         params.validate()?;

@@ -120,9 +120,7 @@ pub fn visible_points(
     max_distance_mm: f64,
     max_angle_deg: f64,
 ) -> Vec<u32> {
-    let cfw = world_from_camera.inverse();
-    let rot = cfw.rotation.to_rotation_matrix();
-    let nm = graph.normal_matrices();
+    let cam = graph.framed(&world_from_camera.inverse());
     let cos_max = max_angle_deg.to_radians().cos();
     // Runs of GROUP points: warped and projected, then the scan read at every pixel hit (the
     // independent loads let their cache misses overlap), then tested in order.
@@ -136,7 +134,7 @@ pub fn visible_points(
             for (gi, group) in chunk.chunks(GROUP).enumerate() {
                 let i0 = ci * 1024 + gi * GROUP;
                 for (j, v) in group.iter().enumerate() {
-                    let p = cfw * Point3::from(graph.warp_point(v, &bindings[i0 + j]));
+                    let p = Point3::from(cam.point(v, &bindings[i0 + j]));
                     at[j] = (p, k.pixel(&p.coords), [0.0; 3], [0.0; 3]);
                 }
                 for a in at[..group.len()].iter_mut() {
@@ -153,7 +151,7 @@ pub fn visible_points(
                     if (p.coords - q).norm() > max_distance_mm {
                         continue;
                     }
-                    let nc = rot * graph.warp_normal(&normals[i], &bindings[i], &nm);
+                    let nc = cam.normal(&normals[i], &bindings[i]);
                     if nc.dot(&Vector3::new(n[0] as f64, n[1] as f64, n[2] as f64)) >= cos_max {
                         keep.push(i as u32);
                     }

@@ -62,6 +62,9 @@ fn grouped_association_and_visible_set_match_their_point_by_point_definition() {
     let cfw = pose.inverse();
     let rot = cfw.rotation.to_rotation_matrix();
     let nm = graph.normal_matrices();
+    // The warp and the map into the camera folded into each node, as the pass and the visible
+    // set compute them: within rounding of the warp and then the map.
+    let cam = graph.framed(&cfw);
     let (max_d, max_angle) = (2.0, 40.0f64);
     let cos_max = max_angle.to_radians().cos();
     // Point by point: the warped point, its pixel, the scan there, the two tests.
@@ -69,7 +72,9 @@ fn grouped_association_and_visible_set_match_their_point_by_point_definition() {
     let (mut want_assoc, mut want_cost, mut outside) = (0usize, 0.0f64, 0usize);
     for i in 0..n {
         let b = &sheet.bindings[i];
-        let p = (cfw * Point3::from(graph.warp_point(&sheet.points[i], b))).coords;
+        let p = cam.point(&sheet.points[i], b);
+        let p_two_steps = (cfw * Point3::from(graph.warp_point(&sheet.points[i], b))).coords;
+        assert!((p - p_two_steps).norm() <= 1e-12 * p.norm(), "point {i}");
         let Some(idx) = pixel(&k, &p) else {
             outside += 1;
             continue;
@@ -79,7 +84,9 @@ fn grouped_association_and_visible_set_match_their_point_by_point_definition() {
             continue;
         }
         let (q, sn) = (f64s(q), f64s(sn));
-        let nc = rot * graph.warp_normal(&sheet.normals[i], b, &nm);
+        let nc = cam.normal(&sheet.normals[i], b);
+        let nc_two_steps = rot * graph.warp_normal(&sheet.normals[i], b, &nm);
+        assert!((nc - nc_two_steps).norm() <= 1e-12, "normal {i}");
         let facing = nc.dot(&sn) >= cos_max;
         if (p - q).norm() <= max_d && facing {
             want_visible.push(i as u32);
