@@ -1,5 +1,10 @@
-//! The coupled node pairs of a solve's pattern key (see [`crate::solver`]).
+//! The pattern key of a solve (its solved nodes, coupled node pairs, eliminations) and the
+//! set its coupled pairs are collected in (see [`crate::solver`]).
 
+use crate::graph::{Binding, EdGraph};
+use crate::problem::Problem;
+use crate::solver::SolveSet;
+use crate::system::PatternKey;
 use rayon::prelude::*;
 
 /// The set of coupled node pairs (j < k) of a solve, collected from every point's binding. With
@@ -73,6 +78,79 @@ impl CoupledPairs {
                 v
             }
         }
+    }
+}
+
+/// Block pattern of `set` ([`crate::solver::Solver`]'s pattern key); `full_factorisation` keeps every node's affine
+/// part in the factorisation.
+pub(crate) fn pattern_key(
+    graph: &EdGraph,
+    problem: &Problem,
+    set: &SolveSet,
+    full_factorisation: bool,
+) -> PatternKey {
+    let mut is_free = vec![false; graph.len()];
+    for &j in &set.free {
+        is_free[j as usize] = true;
+    }
+    let mut pairs = CoupledPairs::new(graph.len(), &set.free);
+    for &(j, k) in &set.reg_edges {
+        if is_free[j as usize] && is_free[k as usize] && j != k {
+            pairs.insert(j, k);
+        }
+    }
+    // Nodes some data term binds: their A couples to other nodes' A and to the pose.
+    let mut has_data = vec![false; graph.len()];
+    if set.data {
+        let mut add = |b: &Binding| {
+            for &x in &b.nodes[..b.len as usize] {
+                has_data[x as usize] = true;
+            }
+            for a in 0..b.len as usize {
+                for c in a + 1..b.len as usize {
+                    let (x, y) = (b.nodes[a], b.nodes[c]);
+                    if is_free[x as usize] && is_free[y as usize] && x != y {
+                        pairs.insert(x, y);
+                    }
+                }
+            }
+        };
+        for b in problem.model.bindings {
+            add(b);
+        }
+        for c in problem.correspondences {
+            add(&c.binding);
+        }
+    }
+    let pairs = pairs.into_sorted();
+    // The rest have their A eliminated before the sparse factorisation (see
+    // [`crate::system`]): it reaches their own t and, through E_reg, the t of their edges' ends.
+    let eliminated: Vec<u32> = set
+        .free
+        .iter()
+        .copied()
+        .filter(|&j| !has_data[j as usize] && !full_factorisation)
+        .collect();
+    let mut links: Vec<(u32, u32)> = set
+        .reg_edges
+        .iter()
+        .copied()
+        .filter(|&(j, k)| {
+            j != k
+                && is_free[j as usize]
+                && is_free[k as usize]
+                && !has_data[j as usize]
+                && !full_factorisation
+        })
+        .collect();
+    links.sort_unstable();
+    links.dedup();
+    PatternKey {
+        free: set.free.clone(),
+        pairs,
+        pose: set.pose,
+        eliminated,
+        links,
     }
 }
 

@@ -13,7 +13,7 @@
 use crate::assemble::DataAssembly;
 use crate::evaluate::Pass;
 use crate::graph::{Binding, EdGraph};
-use crate::pairs::CoupledPairs;
+use crate::pairs::pattern_key;
 use crate::problem::{FieldJacobian, Method, Problem, SolverParams};
 use crate::residuals::pose_rot_residual;
 pub use crate::residuals::{pose_update, reg_residual, rot_residuals};
@@ -830,78 +830,5 @@ impl Solver {
         info.symbolic_builds = self.system.symbolic_builds - builds0;
         info.ms_total = t0.elapsed().as_secs_f64() * 1e3;
         Ok(info)
-    }
-}
-
-/// Block pattern of `set` ([`Solver::pattern`]); `full_factorisation` keeps every node's affine
-/// part in the factorisation.
-fn pattern_key(
-    graph: &EdGraph,
-    problem: &Problem,
-    set: &SolveSet,
-    full_factorisation: bool,
-) -> PatternKey {
-    let mut is_free = vec![false; graph.len()];
-    for &j in &set.free {
-        is_free[j as usize] = true;
-    }
-    let mut pairs = CoupledPairs::new(graph.len(), &set.free);
-    for &(j, k) in &set.reg_edges {
-        if is_free[j as usize] && is_free[k as usize] && j != k {
-            pairs.insert(j, k);
-        }
-    }
-    // Nodes some data term binds: their A couples to other nodes' A and to the pose.
-    let mut has_data = vec![false; graph.len()];
-    if set.data {
-        let mut add = |b: &Binding| {
-            for &x in &b.nodes[..b.len as usize] {
-                has_data[x as usize] = true;
-            }
-            for a in 0..b.len as usize {
-                for c in a + 1..b.len as usize {
-                    let (x, y) = (b.nodes[a], b.nodes[c]);
-                    if is_free[x as usize] && is_free[y as usize] && x != y {
-                        pairs.insert(x, y);
-                    }
-                }
-            }
-        };
-        for b in problem.model.bindings {
-            add(b);
-        }
-        for c in problem.correspondences {
-            add(&c.binding);
-        }
-    }
-    let pairs = pairs.into_sorted();
-    // The rest have their A eliminated before the sparse factorisation (see
-    // [`crate::system`]): it reaches their own t and, through E_reg, the t of their edges' ends.
-    let eliminated: Vec<u32> = set
-        .free
-        .iter()
-        .copied()
-        .filter(|&j| !has_data[j as usize] && !full_factorisation)
-        .collect();
-    let mut links: Vec<(u32, u32)> = set
-        .reg_edges
-        .iter()
-        .copied()
-        .filter(|&(j, k)| {
-            j != k
-                && is_free[j as usize]
-                && is_free[k as usize]
-                && !has_data[j as usize]
-                && !full_factorisation
-        })
-        .collect();
-    links.sort_unstable();
-    links.dedup();
-    PatternKey {
-        free: set.free.clone(),
-        pairs,
-        pose: set.pose,
-        eliminated,
-        links,
     }
 }
