@@ -3,6 +3,10 @@
 //! so a query near the set costs a few dozen cells whatever the set's size.
 
 use misslam_framework::nalgebra::Vector3;
+use rayon::prelude::*;
+
+/// Point sets larger than this are bucketed on rayon's threads.
+const PAR_MIN_POINTS: usize = 4096;
 
 /// Points bucketed in cubic cells (CSR layout: `starts[c]..starts[c + 1]` indexes `items`).
 #[derive(Clone, Debug, Default)]
@@ -12,77 +16,118 @@ pub struct GridIndex {
     dims: [i64; 3],
     starts: Vec<u32>,
     items: Vec<u32>,
+    /// Scratch of [`Self::rebuild`]: each point's cell (u32::MAX when left out), then the fill
+    /// cursors.
+    cell_of: Vec<u32>,
+    fill: Vec<u32>,
 }
+
+/// Cells per indexed point at most (and a floor for few points): a set much sparser than its
+/// box (a stray point far off) gets coarser cells instead of a huge cell array.
+const CELLS_PER_POINT: i64 = 8;
+const MIN_CELLS: i64 = 4096;
 
 impl GridIndex {
     /// Buckets `points` in cells of side `cell` (mm). Non-finite points are left out.
     pub fn build(points: &[Vector3<f64>], cell: f64) -> Self {
+        let mut grid = GridIndex::default();
+        grid.rebuild(points, None, cell);
+        grid
+    }
+
+    /// Buckets again in place, keeping the buffers: the finite points of `points` inside the box
+    /// `bounds` (`(lo, hi)`, inclusive; without it, all of them), in cells of side `cell`, or
+    /// coarser where the box is large for the points in it.
+    pub fn rebuild(
+        &mut self,
+        points: &[Vector3<f64>],
+        bounds: Option<(Vector3<f64>, Vector3<f64>)>,
+        cell: f64,
+    ) {
         let cell = if cell.is_finite() && cell > 0.0 {
             cell
         } else {
             1.0
         };
-        let finite = || points.iter().filter(|p| p.iter().all(|c| c.is_finite()));
-        let mut lo = Vector3::repeat(f64::INFINITY);
-        let mut hi = Vector3::repeat(f64::NEG_INFINITY);
-        for p in finite() {
-            lo = lo.inf(p);
-            hi = hi.sup(p);
-        }
-        if lo.x > hi.x {
-            return GridIndex {
-                cell,
-                ..Default::default()
-            };
-        }
-        let mut dims = [0i64; 3];
-        for a in 0..3 {
-            dims[a] = (((hi[a] - lo[a]) / cell).floor() as i64 + 1).max(1);
-        }
-        // Very sparse sets in a huge box: coarsen so the cell array stays near the point count.
-        let mut grid = GridIndex {
-            origin: lo,
-            cell,
-            dims,
-            starts: Vec::new(),
-            items: Vec::new(),
-        };
-        let limit = (points.len() as i64 * 8).max(4096);
-        while grid.dims.iter().product::<i64>() > limit {
-            grid.cell *= 2.0;
-            for a in 0..3 {
-                grid.dims[a] = (((hi[a] - lo[a]) / grid.cell).floor() as i64 + 1).max(1);
+        let finite = |p: &Vector3<f64>| p.iter().all(|c| c.is_finite());
+        let (lo, hi) = match bounds {
+            Some(b) => b,
+            None => {
+                let mut lo = Vector3::repeat(f64::INFINITY);
+                let mut hi = Vector3::repeat(f64::NEG_INFINITY);
+                for p in points.iter().filter(|p| finite(p)) {
+                    lo = lo.inf(p);
+                    hi = hi.sup(p);
+                }
+                (lo, hi)
             }
+        };
+        let inside = |p: &Vector3<f64>| finite(p) && (0..3).all(|a| p[a] >= lo[a] && p[a] <= hi[a]);
+        let n_in = if points.len() > PAR_MIN_POINTS {
+            points.par_iter().filter(|p| inside(p)).count()
+        } else {
+            points.iter().filter(|p| inside(p)).count()
+        };
+        (self.origin, self.cell, self.dims) = (lo, cell, [1; 3]);
+        self.starts.clear();
+        self.items.clear();
+        if n_in == 0 {
+            self.starts.resize(2, 0);
+            return;
         }
-        let ncell = grid.dims.iter().product::<i64>() as usize;
-        let mut counts = vec![0u32; ncell + 1];
-        let cell_of: Vec<Option<usize>> = points
-            .iter()
-            .map(|p| {
-                p.iter()
-                    .all(|c| c.is_finite())
-                    .then(|| grid.flat(grid.coords(p)))
-            })
-            .collect();
-        for c in cell_of.iter().flatten() {
-            counts[c + 1] += 1;
+        let dims_at = |h: f64| {
+            let mut d = [0i64; 3];
+            for a in 0..3 {
+                d[a] = (((hi[a] - lo[a]) / h).floor() as i64 + 1).max(1);
+            }
+            d
+        };
+        let limit = (n_in as i64 * CELLS_PER_POINT).max(MIN_CELLS);
+        self.dims = dims_at(cell);
+        while self.dims.iter().product::<i64>() > limit {
+            self.cell *= 2.0;
+            self.dims = dims_at(self.cell);
+        }
+        let ncell = self.dims.iter().product::<i64>() as usize;
+        let mut cell_of = std::mem::take(&mut self.cell_of);
+        cell_of.clear();
+        let of = |p: &Vector3<f64>| {
+            if inside(p) {
+                self.flat(self.coords(p)) as u32
+            } else {
+                u32::MAX
+            }
+        };
+        if points.len() > PAR_MIN_POINTS {
+            cell_of.par_extend(points.par_iter().map(of));
+        } else {
+            cell_of.extend(points.iter().map(of));
+        }
+        // A counting sort by cell, stable: a cell's points in ascending order.
+        self.starts.resize(ncell + 1, 0);
+        for &c in &cell_of {
+            if c != u32::MAX {
+                self.starts[c as usize + 1] += 1;
+            }
         }
         for c in 0..ncell {
-            counts[c + 1] += counts[c];
+            self.starts[c + 1] += self.starts[c];
         }
-        let mut fill = counts.clone();
-        let mut items = vec![0u32; counts[ncell] as usize];
-        for (i, c) in cell_of.iter().enumerate() {
-            if let Some(c) = c {
-                items[fill[*c] as usize] = i as u32;
-                fill[*c] += 1;
+        self.fill.clear();
+        self.fill.extend_from_slice(&self.starts[..ncell]);
+        self.items.resize(n_in, 0);
+        for (i, &c) in cell_of.iter().enumerate() {
+            if c != u32::MAX {
+                let at = &mut self.fill[c as usize];
+                self.items[*at as usize] = i as u32;
+                *at += 1;
             }
         }
-        grid.starts = counts;
-        grid.items = items;
-        grid
+        cell_of.clear();
+        self.cell_of = cell_of;
     }
 
+    #[inline]
     fn coords(&self, p: &Vector3<f64>) -> [i64; 3] {
         let mut c = [0i64; 3];
         for a in 0..3 {
@@ -91,11 +136,13 @@ impl GridIndex {
         c
     }
 
+    #[inline]
     fn flat(&self, c: [i64; 3]) -> usize {
         let cl = |a: usize| c[a].clamp(0, self.dims[a] - 1);
         ((cl(2) * self.dims[1] + cl(1)) * self.dims[0] + cl(0)) as usize
     }
 
+    #[inline]
     fn cell_items(&self, c: [i64; 3]) -> &[u32] {
         for a in 0..3 {
             if c[a] < 0 || c[a] >= self.dims[a] {
@@ -117,6 +164,7 @@ impl GridIndex {
     }
 
     /// Visits the cells of the cube shell at Chebyshev radius `r` around `c`.
+    #[inline]
     fn shell(&self, c: [i64; 3], r: i64, mut visit: impl FnMut(&[u32])) {
         for z in c[2] - r..=c[2] + r {
             if z < 0 || z >= self.dims[2] {
@@ -129,8 +177,11 @@ impl GridIndex {
                 }
                 let yedge = zedge || (y - c[1]).abs() == r;
                 if yedge {
-                    for x in (c[0] - r).max(0)..=(c[0] + r).min(self.dims[0] - 1) {
-                        visit(self.cell_items([x, y, z]));
+                    // The row's cells are consecutive: their points are one run of `items`.
+                    let (x0, x1) = ((c[0] - r).max(0), (c[0] + r).min(self.dims[0] - 1));
+                    if x0 <= x1 {
+                        let (a, b) = (self.flat([x0, y, z]), self.flat([x1, y, z]));
+                        visit(&self.items[self.starts[a] as usize..self.starts[b + 1] as usize]);
                     }
                 } else {
                     for x in [c[0] - r, c[0] + r] {
@@ -271,5 +322,72 @@ mod tests {
             let d = (points[b as usize] - q).norm();
             assert_eq!(near.map(|n| n.1), (d <= 6.0).then_some(b));
         }
+    }
+
+    #[test]
+    fn a_rebuild_within_a_box_finds_what_a_search_of_the_points_in_it_finds() {
+        let mut s = 0x2545_f491_4f6c_dd1du64;
+        let mut rnd = move || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let radius = 2.0;
+        // 6,000 points (above the parallel threshold) in a 60 x 40 x 20 mm slab, some outside
+        // the box, one not finite.
+        let mut pts: Vec<Vector3<f64>> = (0..6000)
+            .map(|_| Vector3::new(60.0 * rnd() - 5.0, 40.0 * rnd(), 20.0 * rnd() + 50.0))
+            .collect();
+        pts[17] = Vector3::new(f64::NAN, 1.0, 60.0);
+        let lo = Vector3::new(0.0, 0.0, 50.0);
+        let mut grid = GridIndex::default();
+        // A box the size of the points' (cells of `radius`), then one reaching 10 m away (a
+        // stray keypoint), whose cells must grow to keep the array small, in the same buffers.
+        for hi in [
+            Vector3::new(50.0, 40.0, 70.0),
+            Vector3::new(10_000.0, 40.0, 70.0),
+        ] {
+            grid.rebuild(&pts, Some((lo, hi)), radius);
+            let inside = |p: &Vector3<f64>| (0..3).all(|a| p[a] >= lo[a] && p[a] <= hi[a]);
+            let want: Vec<u32> = (0..pts.len() as u32)
+                .filter(|&i| inside(&pts[i as usize]))
+                .collect();
+            let mut got = grid.items.clone();
+            got.sort_unstable();
+            assert_eq!(got, want, "every point in the box once");
+            let n_cells: i64 = grid.dims.iter().product();
+            assert!(n_cells <= (want.len() as i64 * CELLS_PER_POINT).max(MIN_CELLS));
+            if hi.x < 100.0 {
+                assert_eq!(grid.cell, radius);
+            } else {
+                assert!(grid.cell > radius, "cell {}", grid.cell);
+            }
+            let mut found = 0;
+            for _ in 0..500 {
+                let q = Vector3::new(50.0 * rnd(), 40.0 * rnd(), 50.0 + 20.0 * rnd());
+                let brute = want
+                    .iter()
+                    .map(|&i| ((pts[i as usize] - q).norm_squared(), i))
+                    .filter(|&(d2, _)| d2 <= radius * radius)
+                    .min_by(|a, b| a.0.total_cmp(&b.0));
+                assert_eq!(grid.nearest_within(&pts, &q, radius), brute, "q {q:?}");
+                found += usize::from(brute.is_some());
+            }
+            assert!(
+                found > 100,
+                "{found} of 500 queries have a point within the radius"
+            );
+        }
+        // Nothing in the box: no point found, no panic.
+        grid.rebuild(
+            &pts,
+            Some((Vector3::repeat(-9.0), Vector3::repeat(-8.0))),
+            radius,
+        );
+        assert_eq!(
+            grid.nearest_within(&pts, &Vector3::repeat(-8.5), radius),
+            None
+        );
     }
 }

@@ -26,6 +26,7 @@
 //! mean distance between an anchor's tissue point and its match's from 0.42 to 0.08 mm.
 
 use misslam_deformation_ed::graph::{Binding, EdGraph};
+use misslam_deformation_ed::knn::GridIndex;
 use misslam_deformation_ed::problem::Correspondence;
 use misslam_deformation_ed::problem::Intrinsics;
 use misslam_features_matching::dense::{refine_match, RefineScratch};
@@ -215,114 +216,12 @@ impl Anchors {
     }
 }
 
-/// Reusable buffers of [`anchor`]: the live surfels near the keypoints binned in a grid
-/// ([`CellGrid`]), and the keypoints' world points.
+/// Reusable buffers of [`anchor`]: the live surfels near the keypoints bucketed in a grid, and
+/// the keypoints' world points.
 #[derive(Default)]
 pub struct AnchorScratch {
-    grid: CellGrid,
+    grid: GridIndex,
     world: Vec<Vector3<f64>>,
-}
-
-/// Points binned in a dense grid of cubic cells over a box, by a counting sort: the points of
-/// cell c are `order[start[c]..start[c + 1]]`, ascending; x varies fastest, so the cells
-/// x - 1..=x + 1 of a row are one range. O(points + cells) to build, O(1) to look up.
-#[derive(Default)]
-pub struct CellGrid {
-    lo: Vector3<f64>,
-    cell: f64,
-    dims: [usize; 3],
-    start: Vec<u32>,
-    order: Vec<u32>,
-    cell_of: Vec<u32>,
-    next: Vec<u32>,
-}
-
-/// At most this many cells per binned point (and a floor for few points): a box much larger
-/// than its points (a stray keypoint far off) gets coarser cells instead of a huge grid.
-const CELLS_PER_POINT: usize = 8;
-const MIN_CELLS: usize = 1 << 12;
-
-impl CellGrid {
-    /// Bins the points of `points` inside the box `[lo, hi]` (finite) in cells at least `min_cell`
-    /// wide (doubled until the grid is small enough for the points).
-    fn build(
-        &mut self,
-        points: &[Vector3<f64>],
-        lo: Vector3<f64>,
-        hi: Vector3<f64>,
-        min_cell: f64,
-    ) {
-        let inside = |p: &Vector3<f64>| (0..3).all(|i| p[i] >= lo[i] && p[i] <= hi[i]);
-        let n_in = points.par_iter().filter(|p| inside(p)).count();
-        let cap = (CELLS_PER_POINT * n_in).max(MIN_CELLS);
-        let ext = hi - lo;
-        let dims_at = |h: f64| ext.map(|e| (e / h).floor() as usize + 1);
-        let mut h = min_cell;
-        while dims_at(h).iter().product::<usize>() > cap {
-            h *= 2.0;
-        }
-        let d = dims_at(h);
-        (self.lo, self.cell, self.dims) = (lo, h, [d.x, d.y, d.z]);
-        let n_cells = d.x * d.y * d.z;
-        self.start.clear();
-        self.start.resize(n_cells + 1, 0);
-        let mut cell_of = std::mem::take(&mut self.cell_of);
-        cell_of.clear();
-        cell_of.par_extend(points.par_iter().map(|p| {
-            if inside(p) {
-                self.index(self.coords(p)) as u32
-            } else {
-                u32::MAX
-            }
-        }));
-        self.cell_of = cell_of;
-        for &c in &self.cell_of {
-            if c != u32::MAX {
-                self.start[c as usize + 1] += 1;
-            }
-        }
-        for c in 0..n_cells {
-            self.start[c + 1] += self.start[c];
-        }
-        self.order.clear();
-        self.order.resize(n_in, 0);
-        self.next.clear();
-        self.next.extend_from_slice(&self.start);
-        for (s, &c) in self.cell_of.iter().enumerate() {
-            if c != u32::MAX {
-                let slot = &mut self.next[c as usize];
-                self.order[*slot as usize] = s as u32;
-                *slot += 1;
-            }
-        }
-    }
-
-    /// The cell of a point inside the box.
-    fn coords(&self, p: &Vector3<f64>) -> [usize; 3] {
-        let c = (p - self.lo) / self.cell;
-        [0, 1, 2].map(|i| (c[i].floor() as usize).min(self.dims[i] - 1))
-    }
-
-    fn index(&self, c: [usize; 3]) -> usize {
-        (c[2] * self.dims[1] + c[1]) * self.dims[0] + c[0]
-    }
-
-    /// The points in the 27 cells around point `p`'s (inside the box), row by row (z, then y),
-    /// each row's three cells as one range.
-    fn around(&self, p: &Vector3<f64>) -> impl Iterator<Item = u32> + '_ {
-        let c = self.coords(p);
-        let dims = self.dims;
-        let span = move |i: usize| c[i].saturating_sub(1)..=(c[i] + 1).min(dims[i] - 1);
-        let (x0, x1) = (*span(0).start(), *span(0).end());
-        span(2).flat_map(move |z| {
-            span(1).flat_map(move |y| {
-                let (a, b) = (self.index([x0, y, z]), self.index([x1, y, z]));
-                self.order[self.start[a] as usize..self.start[b + 1] as usize]
-                    .iter()
-                    .copied()
-            })
-        })
-    }
 }
 
 /// What a fusion node keeps between frames for E_corr: the last frame's anchors and the buffers.
@@ -584,11 +483,15 @@ pub fn anchor(
         lo = lo.inf(p);
         hi = hi.sup(p);
     }
-    // The surfels near the keypoints, binned by a counting sort (a parallel comparison sort of
+    // The surfels near the keypoints, bucketed in place by a counting sort (a parallel sort of
     // (cell, surfel) pairs took about half a millisecond a frame with 12,500 surfels).
     let any = lo.iter().all(|c| c.is_finite());
     if any {
-        grid.build(live, lo.add_scalar(-radius), hi.add_scalar(radius), radius);
+        grid.rebuild(
+            live,
+            Some((lo.add_scalar(-radius), hi.add_scalar(radius))),
+            radius,
+        );
     }
     let grid = &*grid;
     // Each keypoint's anchor, in parallel; kept in keypoint order.
@@ -597,20 +500,11 @@ pub fn anchor(
     let found: Vec<Found> = world
         .par_iter()
         .map(|w| {
-            if !any || !w.iter().all(|c| c.is_finite()) {
+            if !any {
                 return None;
             }
-            let mut best = (radius * radius, usize::MAX);
-            for s in grid.around(w) {
-                let d2 = (live[s as usize] - w).norm_squared();
-                if d2 <= best.0 {
-                    best = (d2, s as usize);
-                }
-            }
-            let s = best.1;
-            if s == usize::MAX {
-                return None;
-            }
+            let (_, s) = grid.nearest_within(live, w, radius)?;
+            let s = s as usize;
             // The tissue point under the keypoint: its 3D point moved onto the surfel's tangent
             // plane (see the function doc).
             let n = live_normals.get(s).copied().unwrap_or_else(Vector3::zeros);
