@@ -180,54 +180,58 @@ fn sgm_kernels_take_changed_parameters_on_the_same_buffers() {
 /// flight are errors that say what to do, and the kernels still run after them.
 #[test]
 fn sgm_pairs_in_flight_come_back_in_order_as_run_gives_them() {
-    use misslam_depth_sgm::gpu::{SgmGpu, IN_FLIGHT};
-    use misslam_depth_sgm::sgm::SgmParams;
     let Some(ctx) = gpu() else { return };
+    // Both layouts: with the directions' costs summed, each pair starts from the sums the pair
+    // before left cleared.
+    let p = misslam_depth_sgm::sgm::SgmParams::default();
+    for p in [p, summed_params(&p)] {
+        pairs_in_flight(&ctx, &p);
+    }
+}
+
+fn pairs_in_flight(ctx: &misslam::framework::GpuContext, p: &misslam_depth_sgm::sgm::SgmParams) {
+    use misslam_depth_sgm::gpu::{SgmGpu, IN_FLIGHT};
     let (w, h) = (97, 41);
-    let p = SgmParams::default();
     let pairs: Vec<_> = (0..5).map(|k| stereo_scene(w, h, 11 + 3 * k)).collect();
     let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
     let alone: Vec<_> = pairs
         .iter()
-        .map(|(l, r)| bits(&SgmGpu::new(&ctx).run(&ctx, l, r, w, h, None, &p).unwrap().0))
+        .map(|(l, r)| bits(&SgmGpu::new(ctx).run(ctx, l, r, w, h, None, p).unwrap().0))
         .collect();
     for (k, a) in alone.iter().enumerate().skip(1) {
         assert_ne!(a, &alone[0], "pair {k} differs from pair 0");
     }
-    let mut k = SgmGpu::new(&ctx);
-    let err = k.collect(&ctx).unwrap_err();
+    let mut k = SgmGpu::new(ctx);
+    let err = k.collect(ctx).unwrap_err();
     assert!(err.contains("no GPU SGM pair in flight"), "{err}");
     let mut got = Vec::new();
     let mut next = 0;
     while got.len() < pairs.len() {
         while next < pairs.len() && k.in_flight() < IN_FLIGHT {
             let (l, r) = &pairs[next];
-            k.submit(&ctx, l, r, w, h, None, &p).unwrap();
+            k.submit(ctx, l, r, w, h, None, p).unwrap();
             next += 1;
         }
         if next < pairs.len() {
             let (l, r) = &pairs[next];
-            let err = k.submit(&ctx, l, r, w, h, None, &p).unwrap_err();
+            let err = k.submit(ctx, l, r, w, h, None, p).unwrap_err();
             assert!(err.contains("collect one first"), "{err}");
-            let err = k.run(&ctx, l, r, w, h, None, &p).unwrap_err();
+            let err = k.run(ctx, l, r, w, h, None, p).unwrap_err();
             assert!(err.contains("collect them before"), "{err}");
         }
-        got.push(bits(&k.collect(&ctx).unwrap().0));
+        got.push(bits(&k.collect(ctx).unwrap().0));
     }
     assert_eq!(k.in_flight(), 0);
     for (n, (g, a)) in got.iter().zip(&alone).enumerate() {
         assert!(g == a, "pair {n} in flight differs from its run alone");
     }
     let (l, r) = &pairs[0];
-    k.submit(&ctx, l, r, w, h, None, &p).unwrap();
+    k.submit(ctx, l, r, w, h, None, p).unwrap();
     let (l2, r2) = stereo_scene(w + 8, h, 2);
-    let err = k.submit(&ctx, &l2, &r2, w + 8, h, None, &p).unwrap_err();
+    let err = k.submit(ctx, &l2, &r2, w + 8, h, None, p).unwrap_err();
     assert!(err.contains("collect it first"), "{err}");
-    assert_eq!(bits(&k.collect(&ctx).unwrap().0), alone[0]);
-    assert_eq!(
-        bits(&k.run(&ctx, l, r, w, h, None, &p).unwrap().0),
-        alone[0]
-    );
+    assert_eq!(bits(&k.collect(ctx).unwrap().0), alone[0]);
+    assert_eq!(bits(&k.run(ctx, l, r, w, h, None, p).unwrap().0), alone[0]);
 }
 
 #[test]
@@ -246,9 +250,11 @@ fn sgm_kernels_match_the_cpu_path() {
             },
         ),
         (
-            "4 paths, adaptive P2, d from -3, 20 d, no sub-pixel",
+            "4 paths, adaptive P2, d from -3, 20 d, no sub-pixel, census 21x3 (the widest)",
             SgmParams {
                 paths: 4,
+                census_width: 21,
+                census_height: 3,
                 p2_adaptive: true,
                 p2: 300,
                 min_disparity: -3,

@@ -1,7 +1,7 @@
 // SGM step 1: census transform of the left and the right image (gid.z = 0, 1), one invocation
-// per pixel. CPU reference: misslam_depth_sgm::sgm::census. Bit k of the window (row by row, the
-// centre skipped) lands at bit n - 1 - k of the 64-bit code, kept as (hi, lo) u32 halves; a
-// neighbour outside the image counts as equal to the centre (bit 0).
+// per pixel, a 16x16 tile per workgroup. CPU reference: misslam_depth_sgm::sgm::census. Bit k
+// of the window (row by row, the centre skipped) lands at bit n - 1 - k of the 64-bit code, kept
+// as (hi, lo) u32 halves; a neighbour outside the image counts as equal to the centre (bit 0).
 
 struct Params {
     width: u32,
@@ -27,29 +27,57 @@ fn gray(image: u32, i: u32) -> u32 {
     return (images[j >> 2u] >> ((j & 3u) * 8u)) & 0xffu;
 }
 
-@compute @workgroup_size(8, 8, 1)
-fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+// A 16x16 tile of pixels per workgroup; its gray levels and the window's margin are loaded once
+// into workgroup memory (each pixel's window reads 62 of them). The widest window the 64-bit
+// code holds reaches 10 px each way (21x3 or 3x21).
+const TILE: u32 = 16u;
+const MAX_RADIUS: u32 = 10u;
+const SPAN: u32 = TILE + 2u * MAX_RADIUS;
+// Outside the image: never below the centre (bit 0).
+const OUTSIDE: u32 = 256u;
+var<workgroup> tile: array<u32, SPAN * SPAN>;
+
+@compute @workgroup_size(16, 16, 1)
+fn main(
+    @builtin(global_invocation_id) gid: vec3<u32>,
+    @builtin(local_invocation_index) li: u32,
+    @builtin(workgroup_id) wid: vec3<u32>,
+) {
     let w = params.width;
     let h = params.height;
+    let rx = params.radius_x;
+    let ry = params.radius_y;
+    // The tile with its margin: (TILE + 2 rx) x (TILE + 2 ry) gray levels from (x0, y0).
+    let tw = TILE + 2u * rx;
+    let th = TILE + 2u * ry;
+    let x0 = i32(wid.x * TILE) - i32(rx);
+    let y0 = i32(wid.y * TILE) - i32(ry);
+    for (var k = li; k < tw * th; k = k + TILE * TILE) {
+        let xx = x0 + i32(k % tw);
+        let yy = y0 + i32(k / tw);
+        var g = OUTSIDE;
+        if (xx >= 0 && yy >= 0 && xx < i32(w) && yy < i32(h)) {
+            g = gray(gid.z, u32(yy) * w + u32(xx));
+        }
+        tile[k] = g;
+    }
+    workgroupBarrier();
     if (gid.x >= w || gid.y >= h) {
         return;
     }
-    let c = gray(gid.z, gid.y * w + gid.x);
-    let rx = i32(params.radius_x);
-    let ry = i32(params.radius_y);
+    // The pixel's window in the tile: rows ly .. ly + 2 ry, columns lx .. lx + 2 rx.
+    let lx = gid.x % TILE;
+    let ly = gid.y % TILE;
+    let c = tile[(ly + ry) * tw + lx + rx];
     var hi = 0u;
     var lo = 0u;
-    for (var dy = -ry; dy <= ry; dy = dy + 1) {
-        for (var dx = -rx; dx <= rx; dx = dx + 1) {
-            if (dx == 0 && dy == 0) {
+    for (var dy = 0u; dy <= 2u * ry; dy = dy + 1u) {
+        let row = (ly + dy) * tw + lx;
+        for (var dx = 0u; dx <= 2u * rx; dx = dx + 1u) {
+            if (dx == rx && dy == ry) {
                 continue;
             }
-            let xx = i32(gid.x) + dx;
-            let yy = i32(gid.y) + dy;
-            var bit = 0u;
-            if (xx >= 0 && yy >= 0 && xx < i32(w) && yy < i32(h)) {
-                bit = select(0u, 1u, gray(gid.z, u32(yy) * w + u32(xx)) < c);
-            }
+            let bit = select(0u, 1u, tile[row + dx] < c);
             hi = (hi << 1u) | (lo >> 31u);
             lo = (lo << 1u) | bit;
         }

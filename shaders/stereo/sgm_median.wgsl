@@ -14,6 +14,16 @@ const INVALID: f32 = -3.0e38;
 @group(0) @binding(1) var<storage, read> src: array<f32>;
 @group(0) @binding(2) var<storage, read_write> dst: array<f32>;
 
+// Above every disparity: where a neighbour is invalid or outside the image.
+const ABSENT: f32 = 3.0e38;
+
+// Sorts (a, b) in place.
+fn exchange(a: ptr<function, f32>, b: ptr<function, f32>) {
+    let lo = min(*a, *b);
+    *b = max(*a, *b);
+    *a = lo;
+}
+
 @compute @workgroup_size(8, 8, 1)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let w = i32(params.width);
@@ -26,28 +36,57 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         dst[i] = INVALID;
         return;
     }
-    var v: array<f32, 9>;
+    // The window in registers, ABSENT where no valid value: sorted by a network of 25
+    // exchanges, the valid values come first, in order, and the median is the n / 2-th.
+    var v0 = ABSENT;
+    var v1 = ABSENT;
+    var v2 = ABSENT;
+    var v3 = ABSENT;
+    var v4 = ABSENT;
+    var v5 = ABSENT;
+    var v6 = ABSENT;
+    var v7 = ABSENT;
+    var v8 = ABSENT;
     var n = 0u;
-    for (var dy = -1; dy <= 1; dy = dy + 1) {
-        for (var dx = -1; dx <= 1; dx = dx + 1) {
-            let xx = i32(gid.x) + dx;
-            let yy = i32(gid.y) + dy;
-            if (xx >= 0 && yy >= 0 && xx < w && yy < h) {
-                let q = src[u32(yy * w + xx)];
-                if (q != INVALID) {
-                    // Insertion into the sorted prefix.
-                    var j = n;
-                    while (j > 0u && v[j - 1u] > q) {
-                        v[j] = v[j - 1u];
-                        j = j - 1u;
-                    }
-                    v[j] = q;
-                    n = n + 1u;
-                }
+    for (var k = 0; k < 9; k = k + 1) {
+        let xx = i32(gid.x) + k % 3 - 1;
+        let yy = i32(gid.y) + k / 3 - 1;
+        var q = ABSENT;
+        if (xx >= 0 && yy >= 0 && xx < w && yy < h) {
+            q = src[u32(yy * w + xx)];
+            if (q == INVALID) {
+                q = ABSENT;
             }
         }
+        n = n + u32(q != ABSENT);
+        switch k {
+            case 0: { v0 = q; }
+            case 1: { v1 = q; }
+            case 2: { v2 = q; }
+            case 3: { v3 = q; }
+            case 4: { v4 = q; }
+            case 5: { v5 = q; }
+            case 6: { v6 = q; }
+            case 7: { v7 = q; }
+            default: { v8 = q; }
+        }
     }
-    dst[i] = v[n / 2u];
+    exchange(&v0, &v3); exchange(&v1, &v7); exchange(&v2, &v5); exchange(&v4, &v8);
+    exchange(&v0, &v7); exchange(&v2, &v4); exchange(&v3, &v8); exchange(&v5, &v6);
+    exchange(&v0, &v2); exchange(&v1, &v3); exchange(&v4, &v5); exchange(&v7, &v8);
+    exchange(&v1, &v4); exchange(&v3, &v6); exchange(&v5, &v7);
+    exchange(&v0, &v1); exchange(&v2, &v4); exchange(&v3, &v5); exchange(&v6, &v8);
+    exchange(&v2, &v3); exchange(&v4, &v5); exchange(&v6, &v7);
+    exchange(&v1, &v2); exchange(&v3, &v4); exchange(&v5, &v6);
+    var m = v0;
+    switch n / 2u {
+        case 0u: { m = v0; }
+        case 1u: { m = v1; }
+        case 2u: { m = v2; }
+        case 3u: { m = v3; }
+        default: { m = v4; }
+    }
+    dst[i] = m;
 }
 
 // The final map for the host (entry point `finish`, after the median and the speckles, over

@@ -131,7 +131,63 @@ struct Frame {
     bits: wgpu::Buffer,
     /// `finish` on the median's output and on the selection's.
     finish_bg: [wgpu::BindGroup; 2],
+    /// The next pair's commands, recorded while the GPU ran the pair before, and what they
+    /// were recorded for.
+    prepared: std::cell::Cell<Option<(EncodeKey, wgpu::CommandBuffer)>>,
+    /// Whether the sums hold zeros (cleared after each pair; false on new buffers).
+    sums_clean: std::cell::Cell<bool>,
     _keep: Vec<wgpu::Buffer>,
+}
+
+/// What a pair's commands depend on besides the frame's buffers and kernels.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct EncodeKey {
+    median: bool,
+    speckle: bool,
+    /// The readback buffer.
+    slot: usize,
+    /// The aggregation's workgroups (x, y).
+    groups: (u32, u32),
+}
+
+/// (pipeline, bind group, workgroups) of one dispatch.
+type Job<'a> = (
+    &'a wgpu::ComputePipeline,
+    &'a wgpu::BindGroup,
+    (u32, u32, u32),
+);
+
+fn dispatch(pass: &mut wgpu::ComputePass, jobs: &[Job]) {
+    for (pl, bg, (x, y, z)) in jobs {
+        pass.set_pipeline(pl);
+        pass.set_bind_group(0, *bg, &[]);
+        pass.dispatch_workgroups(*x, *y, *z);
+    }
+}
+
+/// A pair's commands with every kernel in one compute pass: the sums cleared first where
+/// `clear` names them, the final map copied into `staging` last.
+fn encode_pair(
+    dev: &wgpu::Device,
+    stages: &[Vec<Job>],
+    clear: Option<&wgpu::Buffer>,
+    bits: &wgpu::Buffer,
+    staging: &wgpu::Buffer,
+    bytes: u64,
+) -> wgpu::CommandBuffer {
+    let mut enc = dev.create_command_encoder(&Default::default());
+    if let Some(v) = clear {
+        enc.clear_buffer(v, 0, None);
+    }
+    {
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("sgm"),
+            timestamp_writes: None,
+        });
+        dispatch(&mut pass, &stages.concat());
+    }
+    enc.copy_buffer_to_buffer(bits, 0, staging, 0, bytes);
+    enc.finish()
 }
 
 /// A bind group of `entries` (binding, buffer) of group 0 of `pipeline`, for entry points whose
@@ -452,8 +508,42 @@ impl SgmGpu {
             bits,
             finish_bg,
             volumes,
+            prepared: Default::default(),
+            sums_clean: Default::default(),
             _keep: vec![codes, placeholder, parent, size, disp, out],
         });
+    }
+
+    /// The dispatches of a pair on frame `f`, stage by stage (the timestamps' [`STAGES`]; a
+    /// stage switched off holds none).
+    fn stages<'a>(
+        &'a self,
+        f: &'a Frame,
+        agg: &'a wgpu::ComputePipeline,
+        sel: &'a wgpu::ComputePipeline,
+        key: EncodeKey,
+    ) -> Vec<Vec<Job<'a>>> {
+        let (wu, hu) = (f.w as u32, f.h as u32);
+        let tiles8 = (wu.div_ceil(8), hu.div_ceil(8));
+        let tiles16 = (wu.div_ceil(16), hu.div_ceil(16));
+        let on = usize::from(!key.median);
+        let mut stages: Vec<Vec<Job>> = vec![
+            vec![(&self.census, &f.census_bg, (tiles16.0, tiles16.1, 2))],
+            vec![(agg, &f.aggregate_bg, (key.groups.0, key.groups.1, 1))],
+            vec![(sel, &f.select_bg, (hu, 1, 1))],
+            Vec::new(),
+            Vec::new(),
+            vec![(&self.finish, &f.finish_bg[on], (tiles8.0, tiles8.1, 1))],
+        ];
+        if key.median {
+            stages[3].push((&self.median, &f.median_bg, (tiles8.0, tiles8.1, 1)));
+        }
+        if key.speckle {
+            for (pl, bg) in self.speckle.iter().zip(&f.speckle_bg[on]) {
+                stages[4].push((pl, bg, (tiles16.0, tiles16.1, 1)));
+            }
+        }
+        stages
     }
 
     /// The kernels' layout for these parameters on this adapter: the aggregated costs per
@@ -679,39 +769,13 @@ impl SgmGpu {
             ..Default::default()
         };
 
-        let tiles8 = (wu.div_ceil(8), hu.div_ceil(8));
-        let tiles16 = (wu.div_ceil(16), hu.div_ceil(16));
-        let speckle_bg = &f.speckle_bg[usize::from(!p.median)];
-        // (pipeline, bind group, workgroups) of each stage; empty stages are skipped.
-        type Job<'a> = (
-            &'a wgpu::ComputePipeline,
-            &'a wgpu::BindGroup,
-            (u32, u32, u32),
-        );
-        let mut stages: Vec<Vec<Job>> = vec![
-            vec![(&self.census, &f.census_bg, (tiles8.0, tiles8.1, 2))],
-            vec![(
-                agg,
-                &f.aggregate_bg,
-                (groups_x, total_groups.div_ceil(groups_x), 1),
-            )],
-            vec![(sel, &f.select_bg, (hu, 1, 1))],
-            Vec::new(),
-            Vec::new(),
-            vec![(
-                &self.finish,
-                &f.finish_bg[usize::from(!p.median)],
-                (tiles8.0, tiles8.1, 1),
-            )],
-        ];
-        if p.median {
-            stages[3].push((&self.median, &f.median_bg, (tiles8.0, tiles8.1, 1)));
-        }
-        if p.speckle_window > 0 {
-            for (pl, bg) in self.speckle.iter().zip(speckle_bg) {
-                stages[4].push((pl, bg, (tiles16.0, tiles16.1, 1)));
-            }
-        }
+        let key = EncodeKey {
+            median: p.median,
+            speckle: p.speckle_window > 0,
+            slot: self.next_slot,
+            groups: (groups_x, total_groups.div_ceil(groups_x)),
+        };
+        let mut stages = self.stages(f, agg, sel, key);
         let bytes = (w * h * 4) as u64;
         let ts = match self.breakdown {
             Breakdown::Timestamps => self.timestamps.as_ref(),
@@ -719,52 +783,70 @@ impl SgmGpu {
         };
         let staged = self.breakdown == Breakdown::Staged
             || (self.breakdown == Breakdown::Timestamps && ts.is_none());
-        if self.breakdown == Breakdown::Off {
-            // Untimed: every kernel in one pass (wgpu orders the dispatches by their buffers).
-            stages = vec![stages.concat()];
-        }
+        // The sums are cleared after each pair (below), so a pair clears them itself only when it
+        // is the first on these buffers.
+        let clear = (layout.summed && !f.sums_clean.get()).then_some(&f.volumes);
         let mut stage_ms = [0.0f64; STAGES as usize];
-        let mut enc = ctx.device.create_command_encoder(&Default::default());
-        if layout.summed {
-            enc.clear_buffer(&f.volumes, 0, None);
-        }
-        for (k, jobs) in stages.iter().enumerate() {
-            if jobs.is_empty() {
-                continue;
+        let slot = key.slot;
+        let staging = &f.staging[slot];
+        let commands = if self.breakdown == Breakdown::Off {
+            // Untimed: every kernel in one pass (wgpu orders the dispatches by their buffers),
+            // recorded while the pair before was on the GPU where it could be.
+            let prepared = f
+                .prepared
+                .take()
+                .filter(|(k, _)| *k == key && clear.is_none());
+            match prepared {
+                Some((_, commands)) => commands,
+                None => encode_pair(&ctx.device, &stages, clear, &f.bits, staging, bytes),
             }
-            let lap = std::time::Instant::now();
-            {
-                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                    label: Some("sgm"),
-                    timestamp_writes: ts.map(|t| wgpu::ComputePassTimestampWrites {
-                        query_set: &t.set,
-                        beginning_of_pass_write_index: Some(2 * k as u32),
-                        end_of_pass_write_index: Some(2 * k as u32 + 1),
-                    }),
-                });
-                for (pl, bg, (x, y, z)) in jobs {
-                    pass.set_pipeline(pl);
-                    pass.set_bind_group(0, *bg, &[]);
-                    pass.dispatch_workgroups(*x, *y, *z);
+        } else {
+            let mut enc = ctx.device.create_command_encoder(&Default::default());
+            if let Some(v) = clear {
+                enc.clear_buffer(v, 0, None);
+            }
+            for (k, jobs) in stages.iter().enumerate() {
+                if jobs.is_empty() {
+                    continue;
+                }
+                let lap = std::time::Instant::now();
+                {
+                    let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                        label: Some("sgm"),
+                        timestamp_writes: ts.map(|t| wgpu::ComputePassTimestampWrites {
+                            query_set: &t.set,
+                            beginning_of_pass_write_index: Some(2 * k as u32),
+                            end_of_pass_write_index: Some(2 * k as u32 + 1),
+                        }),
+                    });
+                    dispatch(&mut pass, jobs);
+                }
+                if staged {
+                    q.submit(Some(enc.finish()));
+                    ctx.wait().map_err(gpu)?;
+                    stage_ms[k] = lap.elapsed().as_secs_f64() * 1e3;
+                    enc = ctx.device.create_command_encoder(&Default::default());
                 }
             }
-            if staged {
-                q.submit(Some(enc.finish()));
-                ctx.wait().map_err(gpu)?;
-                stage_ms[k] = lap.elapsed().as_secs_f64() * 1e3;
-                enc = ctx.device.create_command_encoder(&Default::default());
+            enc.copy_buffer_to_buffer(&f.bits, 0, staging, 0, bytes);
+            if let Some(t) = ts {
+                enc.resolve_query_set(&t.set, 0..2 * STAGES, &t.resolve, 0);
+                enc.copy_buffer_to_buffer(&t.resolve, 0, &t.read, 0, u64::from(2 * STAGES) * 8);
             }
-        }
-        let slot = self.next_slot;
-        let staging = &f.staging[slot];
-        enc.copy_buffer_to_buffer(&f.bits, 0, staging, 0, bytes);
-        if let Some(t) = ts {
-            enc.resolve_query_set(&t.set, 0..2 * STAGES, &t.resolve, 0);
-            enc.copy_buffer_to_buffer(&t.resolve, 0, &t.read, 0, u64::from(2 * STAGES) * 8);
-        }
+            enc.finish()
+        };
         let t_submit = std::time::Instant::now();
-        let index = q.submit(Some(enc.finish()));
+        let index = q.submit(Some(commands));
         timing.submit_ms = t_submit.elapsed().as_secs_f64() * 1e3;
+        if layout.summed {
+            // The next pair's sums cleared now, in a submission of their own: the GPU clears them
+            // while the host waits for this pair's map and copies it (the map waits only for
+            // the submission that wrote it), not before the next pair's census.
+            let mut enc = ctx.device.create_command_encoder(&Default::default());
+            enc.clear_buffer(&f.volumes, 0, None);
+            q.submit(Some(enc.finish()));
+            f.sums_clean.set(true);
+        }
         // Both mappings are requested now; `collect` waits for them.
         let mut buffers = vec![staging];
         buffers.extend(ts.map(|t| &t.read));
@@ -778,6 +860,25 @@ impl SgmGpu {
                 rx
             })
             .collect();
+        let ran = std::array::from_fn(|k| stages.get(k).is_some_and(|j| !j.is_empty()));
+        if self.breakdown == Breakdown::Off {
+            // The next pair's commands (the other readback buffer), recorded while the GPU works
+            // on this one: a pair with the same buffers and kernels submits them as they are.
+            let next = EncodeKey {
+                slot: (slot + 1) % IN_FLIGHT,
+                ..key
+            };
+            stages = self.stages(f, agg, sel, next);
+            let commands = encode_pair(
+                &ctx.device,
+                &stages,
+                None,
+                &f.bits,
+                &f.staging[next.slot],
+                bytes,
+            );
+            f.prepared.set(Some((next, commands)));
+        }
         timing.summed_volumes = layout.summed;
         timing.subgroups = layout.lanes > 0;
         timing.atomics64 = layout.atomics64;
@@ -789,7 +890,7 @@ impl SgmGpu {
             bytes: bytes as usize,
             timing,
             stage_ms,
-            ran: std::array::from_fn(|k| stages.get(k).is_some_and(|j| !j.is_empty())),
+            ran,
             t_all,
             t_submit,
         });
