@@ -19,8 +19,17 @@ struct Params {
 // Gray levels, four per word (little-endian): the left image, then the right one from word
 // `right_words`.
 @group(0) @binding(1) var<storage, read> images: array<u32>;
-// (hi, lo) per pixel, left then right.
+// (hi, lo) per pixel of the left image.
 @group(0) @binding(2) var<storage, read_write> codes: array<vec2<u32>>;
+// The right image's codes, each row twice so that the aggregation reads any four consecutive
+// codes as two aligned pairs (vec4): code x of row y at slot y * S + 4 + x of the even copy and
+// at slot (h + y) * S + 3 + x of the odd copy (S = `pair_stride`; the margins are never written).
+@group(0) @binding(3) var<storage, read_write> pairs: array<vec2<u32>>;
+
+// Slots per row of each copy (as `sgm_paths.wgsl`'s): the row and a margin of 4 either side, even.
+fn pair_stride(w: u32) -> u32 {
+    return (w + 9u) & ~1u;
+}
 
 fn gray(image: u32, i: u32) -> u32 {
     let j = image * params.right_words * 4u + i;
@@ -82,5 +91,12 @@ fn main(
             lo = (lo << 1u) | bit;
         }
     }
-    codes[gid.z * w * h + gid.y * w + gid.x] = vec2<u32>(hi, lo);
+    let code = vec2<u32>(hi, lo);
+    if (gid.z == 0u) {
+        codes[gid.y * w + gid.x] = code;
+    } else {
+        let s = pair_stride(w);
+        pairs[gid.y * s + 4u + gid.x] = code;
+        pairs[(h + gid.y) * s + 3u + gid.x] = code;
+    }
 }

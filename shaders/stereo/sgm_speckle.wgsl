@@ -213,13 +213,21 @@ fn count(
     }
 }
 
+// The final map for the host (as `finish` in `sgm_median.wgsl`, whose dispatch this one replaces
+// when the speckles are removed): the disparity's bits, or a quiet NaN's where it is invalid or
+// in a speckle.
+@group(0) @binding(4) var<storage, read_write> bits: array<u32>;
+
 @compute @workgroup_size(16, 16, 1)
 fn apply(@builtin(global_invocation_id) gid: vec3<u32>) {
     let i = pixel(gid);
-    if (i == 0xffffffffu || disparity[i] == INVALID) {
+    if (i == 0xffffffffu) {
         return;
     }
-    if (atomicLoad(&size[atomicLoad(&parent[i])]) < params.window) {
-        disparity[i] = INVALID;
+    let v = disparity[i];
+    var keep = v != INVALID;
+    if (keep && atomicLoad(&size[atomicLoad(&parent[i])]) < params.window) {
+        keep = false;
     }
+    bits[i] = select(0x7fc00000u, bitcast<u32>(v), keep);
 }

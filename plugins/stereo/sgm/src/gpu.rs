@@ -16,7 +16,8 @@
 //!    the left-right check;
 //! 4. the 3x3 median;
 //! 5. speckle removal by a parallel union-find, each 16x16 tile in workgroup memory first;
-//! 6. the final map's bits, NaN where invalid, so the readback is a plain copy.
+//! 6. the final map's bits, NaN where invalid, so the readback is a plain copy (written by the
+//!    speckles' last kernel, or by `finish` when they are off).
 //!
 //! [`SgmGpu::run`] does one pair; [`SgmGpu::submit`] and [`SgmGpu::collect`] keep two in flight,
 //! so that a stream of pairs runs at the pace of the GPU instead of the GPU's time plus the
@@ -77,7 +78,8 @@ pub struct SgmGpuTiming {
     pub median_ms: f64,
     /// Speckle removal.
     pub speckle_ms: f64,
-    /// The final map's bits for the host (NaN where invalid).
+    /// The final map's bits for the host (NaN where invalid), when the speckles are off (else
+    /// their last kernel writes them, within `speckle_ms`).
     pub finish_ms: f64,
     /// After the kernels: the copy to the host and the mapping (with GPU timestamps: the wall
     /// time from submission to the host's copy less the kernels' times, so it also holds the
@@ -425,7 +427,14 @@ impl SgmGpu {
         let image_words = (w * h).div_ceil(4) as u64;
         let images = buffer("sgm images", 8 * image_words, U::STORAGE | U::COPY_DST);
         let mask = buffer("sgm mask", 4 * image_words, U::STORAGE | U::COPY_DST);
-        let codes = buffer("sgm census", 2 * px * 8, U::STORAGE);
+        let codes = buffer("sgm census", px * 8, U::STORAGE);
+        // The right image's codes, each row twice with margins (`sgm_census.wgsl`).
+        let pair_stride = ((w + 9) & !1) as u64;
+        let pairs = buffer(
+            "sgm census pairs",
+            2 * h as u64 * pair_stride * 8,
+            U::STORAGE,
+        );
         // The aggregated costs (the sums are cleared before each pair), and a placeholder for the
         // aggregation's binding the layout does not use.
         let volumes = buffer(
@@ -455,11 +464,15 @@ impl SgmGpu {
             ctx.bind_buffers(pipeline, label, bufs)
         };
         let (agg, sel) = &self.specialised[&(l, dirs as u32)];
-        let census_bg = bind("sgm census", &self.census, &[&census_u, &images, &codes]);
+        let census_bg = bind(
+            "sgm census",
+            &self.census,
+            &[&census_u, &images, &codes, &pairs],
+        );
         let aggregate_bg = bind(
             "sgm aggregate",
             agg,
-            &[&aggregate_u, &images, &codes, per_direction, sums],
+            &[&aggregate_u, &images, &codes, per_direction, sums, &pairs],
         );
         let select_bg = bind("sgm select", sel, &[&select_u, &volumes, &mask, &disp]);
         let median_bg = bind("sgm median", &self.median, &[&median_u, &disp, &out]);
@@ -469,10 +482,11 @@ impl SgmGpu {
                 .iter()
                 .zip(SPECKLE_ENTRIES)
                 .map(|(pl, e)| {
-                    let all = [&speckle_u, target, &parent, &size];
+                    let all = [&speckle_u, target, &parent, &size, &bits];
                     let used: &[u32] = match e {
                         "merge" => &[0, 1, 2],
                         "flatten" => &[0, 2],
+                        "apply" => &[0, 1, 2, 3, 4],
                         _ => &[0, 1, 2, 3],
                     };
                     let entries: Vec<_> = used.iter().map(|&b| (b, all[b as usize])).collect();
@@ -510,7 +524,7 @@ impl SgmGpu {
             volumes,
             prepared: Default::default(),
             sums_clean: Default::default(),
-            _keep: vec![codes, placeholder, parent, size, disp, out],
+            _keep: vec![codes, pairs, placeholder, parent, size, disp, out],
         });
     }
 
@@ -533,15 +547,18 @@ impl SgmGpu {
             vec![(sel, &f.select_bg, (hu, 1, 1))],
             Vec::new(),
             Vec::new(),
-            vec![(&self.finish, &f.finish_bg[on], (tiles8.0, tiles8.1, 1))],
+            Vec::new(),
         ];
         if key.median {
             stages[3].push((&self.median, &f.median_bg, (tiles8.0, tiles8.1, 1)));
         }
         if key.speckle {
+            // The last speckle kernel writes the final map.
             for (pl, bg) in self.speckle.iter().zip(&f.speckle_bg[on]) {
                 stages[4].push((pl, bg, (tiles16.0, tiles16.1, 1)));
             }
+        } else {
+            stages[5].push((&self.finish, &f.finish_bg[on], (tiles8.0, tiles8.1, 1)));
         }
         stages
     }
@@ -948,7 +965,12 @@ impl SgmGpu {
                 Ok(view) if k == 0 => {
                     // NaN where invalid already (`finish`): a plain copy. (Split over rayon's
                     // threads it took 0.31 ms on the H100 machine instead of 0.19.)
-                    d = bytemuck::pod_collect_to_vec(&view[..bytes]);
+                    // Into fresh memory, not zeroed first (on the H100 machine the copy took 0.15
+                    // ms of the pair's 1.2).
+                    d = match bytemuck::try_cast_slice::<u8, f32>(&view[..bytes]) {
+                        Ok(v) => v.to_vec(),
+                        Err(_) => bytemuck::pod_collect_to_vec(&view[..bytes]),
+                    };
                 }
                 Ok(view) => {
                     stamps = view
