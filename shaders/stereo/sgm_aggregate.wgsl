@@ -33,6 +33,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid
     let d0 = 4u * t;
     let d = vec4<u32>(d0) + vec4<u32>(0u, 1u, 2u, 3u);
     let padding = d >= vec4<u32>(params.disparities);
+    let keep = select(vec4<u32>(0xffffu), vec4<u32>(0u), padding);
     var p = start(path, wg.dx, wg.dy);
     var len = 0u;
     if (path < wg.paths) {
@@ -81,7 +82,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid
             }
             cur = select(cur, vec4<u32>(BIG), padding);
             prev = cur;
-            store(wg.dir, i, d0, cur, padding);
+            store(wg.dir, i, d0, cur, keep);
             gray_prev = g;
             p = q;
             lo[buf ^ 1u][sp][t] = cur.x;

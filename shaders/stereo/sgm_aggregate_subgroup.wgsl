@@ -46,6 +46,7 @@ fn main(
     let d0 = 4u * t;
     let d = vec4<u32>(d0) + vec4<u32>(0u, 1u, 2u, 3u);
     let padding = d >= vec4<u32>(params.disparities);
+    let keep = select(vec4<u32>(0xffffu), vec4<u32>(0u), padding);
     let holds = t < THREADS;
     var p = start(path, wg.dx, wg.dy);
     var len = 0u;
@@ -88,7 +89,7 @@ fn main(
             cur = select(cur, vec4<u32>(BIG), padding);
             prev = cur;
             if (holds) {
-                store(wg.dir, i, d0, cur, padding);
+                store(wg.dir, i, d0, cur, keep);
             }
             gray_prev = g;
             p = q;

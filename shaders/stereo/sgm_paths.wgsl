@@ -175,15 +175,17 @@ fn right_codes(q: vec2<i32>, d0: u32) -> Right {
 }
 
 // C at pixel p for the disparities d: the Hamming distance of the codes, or `unknown` where
-// x - d - dmin leaves the right image.
+// x - d - dmin leaves the right image. Where every searched disparity stays inside (most pixels;
+// the test is on the path's pixel, so the invocations of a path agree), no test per disparity.
 fn cost(p: vec2<i32>, d: vec4<u32>, code: vec2<u32>, right: Right) -> vec4<u32> {
-    let xr = vec4<i32>(p.x - params.min_disparity) - vec4<i32>(d);
+    let c = countOneBits(vec4<u32>(code.x) ^ right.hi) + countOneBits(vec4<u32>(code.y) ^ right.lo);
+    let x = p.x - params.min_disparity;
+    if (x + 1 >= i32(params.disparities) && x < i32(params.width)) {
+        return c;
+    }
+    let xr = vec4<i32>(x) - vec4<i32>(d);
     let inside = (xr >= vec4<i32>(0)) & (xr < vec4<i32>(i32(params.width)));
-    return select(
-        vec4<u32>(params.unknown),
-        countOneBits(vec4<u32>(code.x) ^ right.hi) + countOneBits(vec4<u32>(code.y) ^ right.lo),
-        inside,
-    );
+    return select(vec4<u32>(params.unknown), c, inside);
 }
 
 // P2 between gray levels g_prev and g (divided by the step when `p2_adaptive` is set).
@@ -208,10 +210,11 @@ fn recur(cur: vec4<u32>, prev: vec4<u32>, below: u32, above: u32, min_prev: u32,
 }
 
 // Stores L of pixel i, disparities d0 .. d0 + 3, into direction r's volume: BYTES per
-// disparity, little-endian within a word; or adds it to the sums.
-fn store(r: u32, i: u32, d0: u32, cur: vec4<u32>, padding: vec4<bool>) {
+// disparity, little-endian within a word; or adds it to the sums, `keep` (0xffff for a searched
+// disparity, 0 for padding) masking out the padding.
+fn store(r: u32, i: u32, d0: u32, cur: vec4<u32>, keep: vec4<u32>) {
     if (SUMMED == 1u) {
-        let b = select(cur & vec4<u32>(0xffffu), vec4<u32>(0u), padding);
+        let b = cur & keep;
         let s = (i * (4u * THREADS) + d0) / 2u;
         add_sums(s, b);
         return;
