@@ -85,28 +85,28 @@ struct Wta {
     after_best: u32,
 }
 
+// Without branches on the sums (the invocations of a warp visit their pixels' disparities in
+// step, and would otherwise take each other's branches); `below` needs no test at d = 0, where
+// `last` still holds its initial 65535.
 fn visit(s: ptr<function, Wta>, v: u32, d: u32) {
     if (d >= params.disparities) {
         return;
     }
-    if (v < (*s).best) {
-        (*s).best = v;
-        (*s).bd = d;
-        (*s).second = (*s).below;
-        (*s).before_best = (*s).last;
-    } else if (d > (*s).bd + 1u) {
-        (*s).second = min((*s).second, v);
-    }
-    if (d == (*s).bd + 1u) {
-        (*s).after_best = v;
-    }
+    let better = v < (*s).best;
+    (*s).second = select(
+        select((*s).second, min((*s).second, v), d > (*s).bd + 1u),
+        (*s).below,
+        better,
+    );
+    (*s).before_best = select((*s).before_best, (*s).last, better);
+    (*s).best = select((*s).best, v, better);
+    (*s).bd = select((*s).bd, d, better);
+    (*s).after_best = select((*s).after_best, v, d == (*s).bd + 1u);
     let xr = i32((*s).x) - i32(d) - params.min_disparity;
     if (xr >= 0 && xr < i32(params.width)) {
         atomicMin(&right_key[u32(xr)], (v << 11u) | d);
     }
-    if (d >= 1u) {
-        (*s).below = min((*s).below, (*s).last);
-    }
+    (*s).below = min((*s).below, (*s).last);
     (*s).last = v;
 }
 
