@@ -2,14 +2,15 @@
 // (Playne and Hawick, "A new algorithm for parallel connected-component labelling on GPUs",
 // IEEE TPDS 2018). Two valid 4-neighbours are joined when their disparities differ by at most
 // `range`; every valid pixel of a component smaller than `window` pixels becomes invalid.
-// Five entry points, dispatched in order over 16x16 tiles (one workgroup each):
+// Four entry points, dispatched in order over 16x16 tiles (one workgroup each):
 //   local    the components within each tile, by the same union-find in workgroup memory;
 //            parent(i) = the pixel of its tile component's root, size(i) = 0;
 //   merge    joins the pixels on a tile's right and lower edge with their neighbour in the next
 //            tile (atomicMin hooks the larger root under the smaller: a tile's local order is
 //            the image's, so parent(i) <= i holds throughout and every find terminates);
-//   flatten  parent(i) = root of i;
-//   count    size(root) += 1 per valid pixel (summed per tile for the tile's smallest root);
+//   count    parent(i) = root of i (the unions are done, so this path compression is safe while
+//            other invocations walk the same trees), and size(root) += 1 per valid pixel
+//            (summed per tile for the tile's smallest root);
 //   apply    invalidates the pixels of small components.
 // CPU reference: misslam_depth_sgm::sgm::remove_speckles (a flood fill); the components are
 // the same partition, so the output is the same.
@@ -168,15 +169,6 @@ fn merge(
     }
 }
 
-@compute @workgroup_size(16, 16, 1)
-fn flatten(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let i = pixel(gid);
-    if (i == 0xffffffffu) {
-        return;
-    }
-    atomicStore(&parent[i], find(i));
-}
-
 // The tile's smallest root and how many of its pixels have it: most tiles lie inside one
 // large component, whose pixels would otherwise all add to one counter in global memory.
 var<workgroup> leader: atomic<u32>;
@@ -195,7 +187,8 @@ fn count(
     let i = pixel(gid);
     var root = 0xffffffffu;
     if (i != 0xffffffffu && disparity[i] != INVALID) {
-        root = atomicLoad(&parent[i]);
+        root = find(i);
+        atomicStore(&parent[i], root);
         atomicMin(&leader, root);
     }
     workgroupBarrier();

@@ -104,12 +104,22 @@ pub struct SgmGpuTiming {
     pub atomics64: bool,
 }
 
-/// The buffers of one size and layout, with their bind groups.
+/// What the specialised kernels are compiled for: the layout, the number of directions and the
+/// census window's radii.
+type KernelKey = (Layout, u32, (u32, u32));
+
+/// The specialised kernels: census, aggregation, selection.
+struct Specialised {
+    census: wgpu::ComputePipeline,
+    aggregate: wgpu::ComputePipeline,
+    select: wgpu::ComputePipeline,
+}
+
+/// The buffers of one size and kernel key, with their bind groups.
 struct Frame {
     w: usize,
     h: usize,
-    dirs: usize,
-    layout: Layout,
+    key: KernelKey,
     images: wgpu::Buffer,
     mask: wgpu::Buffer,
     /// Two readback buffers, so that a pair can be submitted while the one before is still
@@ -126,7 +136,7 @@ struct Frame {
     aggregate_bg: wgpu::BindGroup,
     select_bg: wgpu::BindGroup,
     median_bg: wgpu::BindGroup,
-    /// Speckle bind groups of the five entry points, on the median's output and on the
+    /// Speckle bind groups of the four entry points, on the median's output and on the
     /// selection's (median off).
     speckle_bg: [Vec<wgpu::BindGroup>; 2],
     /// The final map's bits (NaN where invalid), copied to a `staging` buffer.
@@ -238,11 +248,12 @@ pub enum Breakdown {
 
 /// The compiled SGM kernels and their buffers.
 pub struct SgmGpu {
-    census: wgpu::ComputePipeline,
     median: wgpu::ComputePipeline,
     finish: wgpu::ComputePipeline,
     speckle: Vec<wgpu::ComputePipeline>,
-    specialised: HashMap<(Layout, u32), (wgpu::ComputePipeline, wgpu::ComputePipeline)>,
+    /// Census, aggregation and selection, specialised for a layout, a number of directions
+    /// and a census window.
+    specialised: HashMap<KernelKey, Specialised>,
     frame: Option<Frame>,
     timestamps: Option<Timestamps>,
     breakdown: Breakdown,
@@ -292,7 +303,7 @@ fn words(v: &[u32]) -> &[u8] {
     bytemuck::cast_slice(v)
 }
 
-const SPECKLE_ENTRIES: [&str; 5] = ["local", "merge", "flatten", "count", "apply"];
+const SPECKLE_ENTRIES: [&str; 4] = ["local", "merge", "count", "apply"];
 
 /// Whether this adapter can run `p`'s `gpu_exchange` (a forced "subgroup" needs subgroups
 /// of one size that hold a path); the message names the parameter. The node checks it when it
@@ -334,7 +345,6 @@ impl SgmGpu {
                 }
             });
         SgmGpu {
-            census: ctx.compute_pipeline("sgm census", CENSUS_WGSL, "main"),
             median: ctx.compute_pipeline("sgm median", MEDIAN_WGSL, "main"),
             finish: ctx.compute_pipeline("sgm finish", MEDIAN_WGSL, "finish"),
             speckle: SPECKLE_ENTRIES
@@ -364,10 +374,13 @@ impl SgmGpu {
         self.breakdown = breakdown;
     }
 
-    fn pipelines(&mut self, ctx: &GpuContext, l: Layout, dirs: u32) -> Result<(), String> {
-        if self.specialised.contains_key(&(l, dirs)) {
+    fn pipelines(&mut self, ctx: &GpuContext, key: KernelKey) -> Result<(), String> {
+        if self.specialised.contains_key(&key) {
             return Ok(());
         }
+        let (l, dirs, (rx, ry)) = key;
+        // The window's loops unrolled.
+        let census = specialise(CENSUS_WGSL, &[("RX", rx), ("RY", ry)])?;
         let mut constants = vec![
             ("THREADS", l.threads),
             ("PATHS", l.paths),
@@ -402,24 +415,26 @@ impl SgmGpu {
                 ("THREADS", SELECT_THREADS),
             ],
         )?;
-        let pipelines = (
-            ctx.compute_pipeline("sgm aggregate", &agg, "main"),
-            ctx.compute_pipeline("sgm select", &sel, "main"),
-        );
-        self.specialised.insert((l, dirs), pipelines);
+        let pipelines = Specialised {
+            census: ctx.compute_pipeline("sgm census", &census, "main"),
+            aggregate: ctx.compute_pipeline("sgm aggregate", &agg, "main"),
+            select: ctx.compute_pipeline("sgm select", &sel, "main"),
+        };
+        self.specialised.insert(key, pipelines);
         Ok(())
     }
 
-    fn frame(&mut self, ctx: &GpuContext, w: usize, h: usize, dirs: usize, l: Layout) {
+    fn frame(&mut self, ctx: &GpuContext, w: usize, h: usize, key: KernelKey) {
         if self
             .frame
             .as_ref()
-            .is_some_and(|f| (f.w, f.h, f.dirs, f.layout) == (w, h, dirs, l))
+            .is_some_and(|f| (f.w, f.h, f.key) == (w, h, key))
         {
             return;
         }
         self.frame = None;
         self.uniforms = Default::default();
+        let (l, dirs) = (key.0, key.1 as usize);
         let dev = &ctx.device;
         let buffer = |label: &str, size: u64, usage| ctx.buffer(label, size, usage);
         use wgpu::BufferUsages as U;
@@ -463,10 +478,11 @@ impl SgmGpu {
         let bind = |label: &str, pipeline: &wgpu::ComputePipeline, bufs: &[&wgpu::Buffer]| {
             ctx.bind_buffers(pipeline, label, bufs)
         };
-        let (agg, sel) = &self.specialised[&(l, dirs as u32)];
+        let k = &self.specialised[&key];
+        let (agg, sel) = (&k.aggregate, &k.select);
         let census_bg = bind(
             "sgm census",
-            &self.census,
+            &k.census,
             &[&census_u, &images, &codes, &pairs],
         );
         let aggregate_bg = bind(
@@ -485,7 +501,6 @@ impl SgmGpu {
                     let all = [&speckle_u, target, &parent, &size, &bits];
                     let used: &[u32] = match e {
                         "merge" => &[0, 1, 2],
-                        "flatten" => &[0, 2],
                         "apply" => &[0, 1, 2, 3, 4],
                         _ => &[0, 1, 2, 3],
                     };
@@ -504,8 +519,7 @@ impl SgmGpu {
         self.frame = Some(Frame {
             w,
             h,
-            dirs,
-            layout: l,
+            key,
             images,
             mask,
             staging,
@@ -530,19 +544,14 @@ impl SgmGpu {
 
     /// The dispatches of a pair on frame `f`, stage by stage (the timestamps' [`STAGES`]; a
     /// stage switched off holds none).
-    fn stages<'a>(
-        &'a self,
-        f: &'a Frame,
-        agg: &'a wgpu::ComputePipeline,
-        sel: &'a wgpu::ComputePipeline,
-        key: EncodeKey,
-    ) -> Vec<Vec<Job<'a>>> {
+    fn stages<'a>(&'a self, f: &'a Frame, k: &'a Specialised, key: EncodeKey) -> Vec<Vec<Job<'a>>> {
+        let (agg, sel) = (&k.aggregate, &k.select);
         let (wu, hu) = (f.w as u32, f.h as u32);
         let tiles8 = (wu.div_ceil(8), hu.div_ceil(8));
         let tiles16 = (wu.div_ceil(16), hu.div_ceil(16));
         let on = usize::from(!key.median);
         let mut stages: Vec<Vec<Job>> = vec![
-            vec![(&self.census, &f.census_bg, (tiles16.0, tiles16.1, 2))],
+            vec![(&k.census, &f.census_bg, (tiles16.0, tiles16.1, 2))],
             vec![(agg, &f.aggregate_bg, (key.groups.0, key.groups.1, 1))],
             vec![(sel, &f.select_bg, (hu, 1, 1))],
             Vec::new(),
@@ -664,18 +673,23 @@ impl SgmGpu {
         }
         let dirs: &[(isize, isize)] = if p.paths == 8 { &DIRS } else { &DIRS4 };
         let layout = self.layout(ctx, p, w, h, dirs.len())?;
+        let kernel_key = (
+            layout,
+            dirs.len() as u32,
+            (p.census_width / 2, p.census_height / 2),
+        );
         let same_frame = self
             .frame
             .as_ref()
-            .is_some_and(|f| (f.w, f.h, f.dirs, f.layout) == (w, h, dirs.len(), layout));
+            .is_some_and(|f| (f.w, f.h, f.key) == (w, h, kernel_key));
         if !self.in_flight.is_empty() && !same_frame {
             return Err(format!(
                 "a {w}x{h} GPU SGM pair needs other buffers than the pair in flight: collect it first"
             ));
         }
-        self.pipelines(ctx, layout, dirs.len() as u32)?;
-        self.frame(ctx, w, h, dirs.len(), layout);
-        let (agg, sel) = &self.specialised[&(layout, dirs.len() as u32)];
+        self.pipelines(ctx, kernel_key)?;
+        self.frame(ctx, w, h, kernel_key);
+        let kernels = &self.specialised[&kernel_key];
         let f = self.frame.as_ref().ok_or("no GPU buffers")?;
         let gpu = |e: GpuError| e.to_string();
         let q = &ctx.queue;
@@ -792,7 +806,7 @@ impl SgmGpu {
             slot: self.next_slot,
             groups: (groups_x, total_groups.div_ceil(groups_x)),
         };
-        let mut stages = self.stages(f, agg, sel, key);
+        let mut stages = self.stages(f, kernels, key);
         let bytes = (w * h * 4) as u64;
         let ts = match self.breakdown {
             Breakdown::Timestamps => self.timestamps.as_ref(),
@@ -885,7 +899,7 @@ impl SgmGpu {
                 slot: (slot + 1) % IN_FLIGHT,
                 ..key
             };
-            stages = self.stages(f, agg, sel, next);
+            stages = self.stages(f, kernels, next);
             let commands = encode_pair(
                 &ctx.device,
                 &stages,
