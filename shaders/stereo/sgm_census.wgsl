@@ -6,7 +6,6 @@
 struct Params {
     width: u32,
     height: u32,
-    // The window's radii (the kernel's RX and RY are specialised to them).
     radius_x: u32,
     radius_y: u32,
     // Word offset of the right image in `images`.
@@ -37,17 +36,15 @@ fn gray(image: u32, i: u32) -> u32 {
     return (images[j >> 2u] >> ((j & 3u) * 8u)) & 0xffu;
 }
 
-// The window's radii, specialised by the host (the loops unroll): 9x7 by default.
-const RX: u32 = 4u;
-const RY: u32 = 3u;
 // A 16x16 tile of pixels per workgroup; its gray levels and the window's margin are loaded once
-// into workgroup memory (each pixel's window reads all but one of them).
+// into workgroup memory (each pixel's window reads 62 of them). The widest window the 64-bit
+// code holds reaches 10 px each way (21x3 or 3x21).
 const TILE: u32 = 16u;
-const TW: u32 = TILE + 2u * RX;
-const TH: u32 = TILE + 2u * RY;
+const MAX_RADIUS: u32 = 10u;
+const SPAN: u32 = TILE + 2u * MAX_RADIUS;
 // Outside the image: never below the centre (bit 0).
 const OUTSIDE: u32 = 256u;
-var<workgroup> tile: array<u32, TW * TH>;
+var<workgroup> tile: array<u32, SPAN * SPAN>;
 
 @compute @workgroup_size(16, 16, 1)
 fn main(
@@ -57,12 +54,16 @@ fn main(
 ) {
     let w = params.width;
     let h = params.height;
-    // The tile with its margin: TW x TH gray levels from (x0, y0).
-    let x0 = i32(wid.x * TILE) - i32(RX);
-    let y0 = i32(wid.y * TILE) - i32(RY);
-    for (var k = li; k < TW * TH; k = k + TILE * TILE) {
-        let xx = x0 + i32(k % TW);
-        let yy = y0 + i32(k / TW);
+    let rx = params.radius_x;
+    let ry = params.radius_y;
+    // The tile with its margin: (TILE + 2 rx) x (TILE + 2 ry) gray levels from (x0, y0).
+    let tw = TILE + 2u * rx;
+    let th = TILE + 2u * ry;
+    let x0 = i32(wid.x * TILE) - i32(rx);
+    let y0 = i32(wid.y * TILE) - i32(ry);
+    for (var k = li; k < tw * th; k = k + TILE * TILE) {
+        let xx = x0 + i32(k % tw);
+        let yy = y0 + i32(k / tw);
         var g = OUTSIDE;
         if (xx >= 0 && yy >= 0 && xx < i32(w) && yy < i32(h)) {
             g = gray(gid.z, u32(yy) * w + u32(xx));
@@ -73,16 +74,16 @@ fn main(
     if (gid.x >= w || gid.y >= h) {
         return;
     }
-    // The pixel's window in the tile: rows ly .. ly + 2 RY, columns lx .. lx + 2 RX.
+    // The pixel's window in the tile: rows ly .. ly + 2 ry, columns lx .. lx + 2 rx.
     let lx = gid.x % TILE;
     let ly = gid.y % TILE;
-    let c = tile[(ly + RY) * TW + lx + RX];
+    let c = tile[(ly + ry) * tw + lx + rx];
     var hi = 0u;
     var lo = 0u;
-    for (var dy = 0u; dy <= 2u * RY; dy = dy + 1u) {
-        let row = (ly + dy) * TW + lx;
-        for (var dx = 0u; dx <= 2u * RX; dx = dx + 1u) {
-            if (dx == RX && dy == RY) {
+    for (var dy = 0u; dy <= 2u * ry; dy = dy + 1u) {
+        let row = (ly + dy) * tw + lx;
+        for (var dx = 0u; dx <= 2u * rx; dx = dx + 1u) {
+            if (dx == rx && dy == ry) {
                 continue;
             }
             let bit = select(0u, 1u, tile[row + dx] < c);

@@ -104,22 +104,12 @@ pub struct SgmGpuTiming {
     pub atomics64: bool,
 }
 
-/// What the specialised kernels are compiled for: the layout, the number of directions and the
-/// census window's radii.
-type KernelKey = (Layout, u32, (u32, u32));
-
-/// The specialised kernels: census, aggregation, selection.
-struct Specialised {
-    census: wgpu::ComputePipeline,
-    aggregate: wgpu::ComputePipeline,
-    select: wgpu::ComputePipeline,
-}
-
-/// The buffers of one size and kernel key, with their bind groups.
+/// The buffers of one size and layout, with their bind groups.
 struct Frame {
     w: usize,
     h: usize,
-    key: KernelKey,
+    dirs: usize,
+    layout: Layout,
     images: wgpu::Buffer,
     mask: wgpu::Buffer,
     /// Two readback buffers, so that a pair can be submitted while the one before is still
@@ -248,12 +238,11 @@ pub enum Breakdown {
 
 /// The compiled SGM kernels and their buffers.
 pub struct SgmGpu {
+    census: wgpu::ComputePipeline,
     median: wgpu::ComputePipeline,
     finish: wgpu::ComputePipeline,
     speckle: Vec<wgpu::ComputePipeline>,
-    /// Census, aggregation and selection, specialised for a layout, a number of directions
-    /// and a census window.
-    specialised: HashMap<KernelKey, Specialised>,
+    specialised: HashMap<(Layout, u32), (wgpu::ComputePipeline, wgpu::ComputePipeline)>,
     frame: Option<Frame>,
     timestamps: Option<Timestamps>,
     breakdown: Breakdown,
@@ -345,6 +334,7 @@ impl SgmGpu {
                 }
             });
         SgmGpu {
+            census: ctx.compute_pipeline("sgm census", CENSUS_WGSL, "main"),
             median: ctx.compute_pipeline("sgm median", MEDIAN_WGSL, "main"),
             finish: ctx.compute_pipeline("sgm finish", MEDIAN_WGSL, "finish"),
             speckle: SPECKLE_ENTRIES
@@ -374,13 +364,10 @@ impl SgmGpu {
         self.breakdown = breakdown;
     }
 
-    fn pipelines(&mut self, ctx: &GpuContext, key: KernelKey) -> Result<(), String> {
-        if self.specialised.contains_key(&key) {
+    fn pipelines(&mut self, ctx: &GpuContext, l: Layout, dirs: u32) -> Result<(), String> {
+        if self.specialised.contains_key(&(l, dirs)) {
             return Ok(());
         }
-        let (l, dirs, (rx, ry)) = key;
-        // The window's loops unrolled.
-        let census = specialise(CENSUS_WGSL, &[("RX", rx), ("RY", ry)])?;
         let mut constants = vec![
             ("THREADS", l.threads),
             ("PATHS", l.paths),
@@ -415,26 +402,24 @@ impl SgmGpu {
                 ("THREADS", SELECT_THREADS),
             ],
         )?;
-        let pipelines = Specialised {
-            census: ctx.compute_pipeline("sgm census", &census, "main"),
-            aggregate: ctx.compute_pipeline("sgm aggregate", &agg, "main"),
-            select: ctx.compute_pipeline("sgm select", &sel, "main"),
-        };
-        self.specialised.insert(key, pipelines);
+        let pipelines = (
+            ctx.compute_pipeline("sgm aggregate", &agg, "main"),
+            ctx.compute_pipeline("sgm select", &sel, "main"),
+        );
+        self.specialised.insert((l, dirs), pipelines);
         Ok(())
     }
 
-    fn frame(&mut self, ctx: &GpuContext, w: usize, h: usize, key: KernelKey) {
+    fn frame(&mut self, ctx: &GpuContext, w: usize, h: usize, dirs: usize, l: Layout) {
         if self
             .frame
             .as_ref()
-            .is_some_and(|f| (f.w, f.h, f.key) == (w, h, key))
+            .is_some_and(|f| (f.w, f.h, f.dirs, f.layout) == (w, h, dirs, l))
         {
             return;
         }
         self.frame = None;
         self.uniforms = Default::default();
-        let (l, dirs) = (key.0, key.1 as usize);
         let dev = &ctx.device;
         let buffer = |label: &str, size: u64, usage| ctx.buffer(label, size, usage);
         use wgpu::BufferUsages as U;
@@ -478,11 +463,10 @@ impl SgmGpu {
         let bind = |label: &str, pipeline: &wgpu::ComputePipeline, bufs: &[&wgpu::Buffer]| {
             ctx.bind_buffers(pipeline, label, bufs)
         };
-        let k = &self.specialised[&key];
-        let (agg, sel) = (&k.aggregate, &k.select);
+        let (agg, sel) = &self.specialised[&(l, dirs as u32)];
         let census_bg = bind(
             "sgm census",
-            &k.census,
+            &self.census,
             &[&census_u, &images, &codes, &pairs],
         );
         let aggregate_bg = bind(
@@ -519,7 +503,8 @@ impl SgmGpu {
         self.frame = Some(Frame {
             w,
             h,
-            key,
+            dirs,
+            layout: l,
             images,
             mask,
             staging,
@@ -544,14 +529,19 @@ impl SgmGpu {
 
     /// The dispatches of a pair on frame `f`, stage by stage (the timestamps' [`STAGES`]; a
     /// stage switched off holds none).
-    fn stages<'a>(&'a self, f: &'a Frame, k: &'a Specialised, key: EncodeKey) -> Vec<Vec<Job<'a>>> {
-        let (agg, sel) = (&k.aggregate, &k.select);
+    fn stages<'a>(
+        &'a self,
+        f: &'a Frame,
+        agg: &'a wgpu::ComputePipeline,
+        sel: &'a wgpu::ComputePipeline,
+        key: EncodeKey,
+    ) -> Vec<Vec<Job<'a>>> {
         let (wu, hu) = (f.w as u32, f.h as u32);
         let tiles8 = (wu.div_ceil(8), hu.div_ceil(8));
         let tiles16 = (wu.div_ceil(16), hu.div_ceil(16));
         let on = usize::from(!key.median);
         let mut stages: Vec<Vec<Job>> = vec![
-            vec![(&k.census, &f.census_bg, (tiles16.0, tiles16.1, 2))],
+            vec![(&self.census, &f.census_bg, (tiles16.0, tiles16.1, 2))],
             vec![(agg, &f.aggregate_bg, (key.groups.0, key.groups.1, 1))],
             vec![(sel, &f.select_bg, (hu, 1, 1))],
             Vec::new(),
@@ -673,23 +663,18 @@ impl SgmGpu {
         }
         let dirs: &[(isize, isize)] = if p.paths == 8 { &DIRS } else { &DIRS4 };
         let layout = self.layout(ctx, p, w, h, dirs.len())?;
-        let kernel_key = (
-            layout,
-            dirs.len() as u32,
-            (p.census_width / 2, p.census_height / 2),
-        );
         let same_frame = self
             .frame
             .as_ref()
-            .is_some_and(|f| (f.w, f.h, f.key) == (w, h, kernel_key));
+            .is_some_and(|f| (f.w, f.h, f.dirs, f.layout) == (w, h, dirs.len(), layout));
         if !self.in_flight.is_empty() && !same_frame {
             return Err(format!(
                 "a {w}x{h} GPU SGM pair needs other buffers than the pair in flight: collect it first"
             ));
         }
-        self.pipelines(ctx, kernel_key)?;
-        self.frame(ctx, w, h, kernel_key);
-        let kernels = &self.specialised[&kernel_key];
+        self.pipelines(ctx, layout, dirs.len() as u32)?;
+        self.frame(ctx, w, h, dirs.len(), layout);
+        let (agg, sel) = &self.specialised[&(layout, dirs.len() as u32)];
         let f = self.frame.as_ref().ok_or("no GPU buffers")?;
         let gpu = |e: GpuError| e.to_string();
         let q = &ctx.queue;
@@ -806,7 +791,7 @@ impl SgmGpu {
             slot: self.next_slot,
             groups: (groups_x, total_groups.div_ceil(groups_x)),
         };
-        let mut stages = self.stages(f, kernels, key);
+        let mut stages = self.stages(f, agg, sel, key);
         let bytes = (w * h * 4) as u64;
         let ts = match self.breakdown {
             Breakdown::Timestamps => self.timestamps.as_ref(),
@@ -899,7 +884,7 @@ impl SgmGpu {
                 slot: (slot + 1) % IN_FLIGHT,
                 ..key
             };
-            stages = self.stages(f, kernels, next);
+            stages = self.stages(f, agg, sel, next);
             let commands = encode_pair(
                 &ctx.device,
                 &stages,

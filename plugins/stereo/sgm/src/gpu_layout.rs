@@ -182,9 +182,7 @@ pub(crate) fn specialise(src: &str, values: &[(&str, u32)]) -> Result<String, St
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gpu::{
-        AGGREGATE_SUBGROUP_WGSL, AGGREGATE_WGSL, CENSUS_WGSL, PATHS_WGSL, SELECT_WGSL, SUMS_WGSL,
-    };
+    use crate::gpu::{AGGREGATE_SUBGROUP_WGSL, AGGREGATE_WGSL, PATHS_WGSL, SELECT_WGSL, SUMS_WGSL};
     use misslam_framework::gpu::wgsl_with_uses;
 
     #[test]
@@ -199,8 +197,6 @@ mod tests {
             assert!(src.contains("const THREADS: u32 = 36u;"));
             assert!(src.contains("const BYTES: u32 = 2u;"));
         }
-        let census = specialise(CENSUS_WGSL, &[("RX", 10), ("RY", 1)]).unwrap();
-        assert!(census.contains("const RX: u32 = 10u;") && census.contains("const RY: u32 = 1u;"));
         let sel = specialise(SELECT_WGSL, &[("BYTES", 1), ("DIRS", 4), ("THREADS", 64)]).unwrap();
         assert!(sel.contains("const DIRS: u32 = 4u;"));
         let err = specialise(SELECT_WGSL, &[("PER", 4)]).unwrap_err();
