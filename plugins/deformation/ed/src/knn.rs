@@ -27,6 +27,15 @@ pub struct GridIndex {
 const CELLS_PER_POINT: i64 = 8;
 const MIN_CELLS: i64 = 4096;
 
+/// `x.floor() as i64` for finite `x` in i64's range, without the library call `floor` is on
+/// x86-64's baseline (no SSE4.1): the conversion truncates toward zero, one less below zero
+/// where that rounded up. (Bucketing 16,000 surfels: 0.121 to 0.092 ms.)
+#[inline]
+fn floor_i64(x: f64) -> i64 {
+    let t = x as i64;
+    t - i64::from((t as f64) > x)
+}
+
 impl GridIndex {
     /// Buckets `points` in cells of side `cell` (mm). Non-finite points are left out.
     pub fn build(points: &[Vector3<f64>], cell: f64) -> Self {
@@ -131,7 +140,7 @@ impl GridIndex {
     fn coords(&self, p: &Vector3<f64>) -> [i64; 3] {
         let mut c = [0i64; 3];
         for a in 0..3 {
-            c[a] = ((p[a] - self.origin[a]) / self.cell).floor() as i64;
+            c[a] = floor_i64((p[a] - self.origin[a]) / self.cell);
         }
         c
     }
@@ -289,6 +298,26 @@ mod tests {
             .collect();
         all.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
         all.iter().take(k).map(|e| e.1).collect()
+    }
+
+    #[test]
+    fn floor_i64_is_floor() {
+        for x in [
+            0.0,
+            -0.0,
+            0.5,
+            -0.5,
+            1.0,
+            -1.0,
+            2.999,
+            -2.999,
+            1e15,
+            -1e15,
+            -1e-300,
+            7.0 - 1e-12,
+        ] {
+            assert_eq!(floor_i64(x), x.floor() as i64, "{x}");
+        }
     }
 
     #[test]
