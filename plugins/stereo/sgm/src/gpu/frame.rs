@@ -189,8 +189,8 @@ impl SgmGpu {
             2 * h as u64 * pair_stride * 8,
             U::STORAGE,
         );
-        // The aggregated costs (the sums are cleared before each pair), and a placeholder for the
-        // aggregation's binding the layout does not use.
+        // The aggregated costs (the sums cleared after each pair, and by the first pair on them),
+        // and a placeholder for the aggregation's binding the layout does not use.
         let volumes = buffer(
             "sgm volumes",
             l.volumes_bytes(w, h, dirs),
