@@ -10,7 +10,9 @@ struct Params {
     radius_y: u32,
     // Word offset of the right image in `images`.
     right_words: u32,
-    pad0: u32,
+    // Slots per row of each copy of the right codes (the host's `pair_stride`: the row and a
+    // margin of 4 either side, even).
+    pair_stride: u32,
     pad1: u32,
     pad2: u32,
 }
@@ -23,13 +25,10 @@ struct Params {
 @group(0) @binding(2) var<storage, read_write> codes: array<vec2<u32>>;
 // The right image's codes, each row twice so that the aggregation reads any four consecutive
 // codes as two aligned pairs (vec4): code x of row y at slot y * S + 4 + x of the even copy and
-// at slot (h + y) * S + 3 + x of the odd copy (S = `pair_stride`; the margins are never written).
+// at slot (h + y) * S + 3 + x of the odd copy (S = `params.pair_stride`; the margins are never
+// written).
 @group(0) @binding(3) var<storage, read_write> pairs: array<vec2<u32>>;
 
-// Slots per row of each copy (as `sgm_paths.wgsl`'s): the row and a margin of 4 either side, even.
-fn pair_stride(w: u32) -> u32 {
-    return (w + 9u) & ~1u;
-}
 
 fn gray(image: u32, i: u32) -> u32 {
     let j = image * params.right_words * 4u + i;
@@ -95,7 +94,7 @@ fn main(
     if (gid.z == 0u) {
         codes[gid.y * w + gid.x] = code;
     } else {
-        let s = pair_stride(w);
+        let s = params.pair_stride;
         pairs[gid.y * s + 4u + gid.x] = code;
         pairs[(h + gid.y) * s + 3u + gid.x] = code;
     }

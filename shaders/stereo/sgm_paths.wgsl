@@ -44,6 +44,11 @@ struct Params {
     volume_words: u32,
     // Word offset of the right image in `images`.
     right_words: u32,
+    // Slots per row of each copy of the right codes in `pairs` (see `sgm_census.wgsl`).
+    pair_stride: u32,
+    pad0: u32,
+    pad1: u32,
+    pad2: u32,
     dir: array<Dir, 8>,
 }
 
@@ -59,11 +64,6 @@ const BIG: u32 = 0x3fffffffu;
 @group(0) @binding(2) var<storage, read> codes: array<vec2<u32>>;
 // The right image's codes, each row twice (`sgm_census.wgsl`), two codes per element.
 @group(0) @binding(5) var<storage, read> pairs: array<vec4<u32>>;
-
-// Codes per row of `pairs` in each copy: the row and a margin of 4 on either side, even.
-fn pair_stride(w: u32) -> u32 {
-    return (w + 9u) & ~1u;
-}
 @group(0) @binding(3) var<storage, read_write> volumes: array<u32>;
 // The volume of sums (SUMMED = 1; binding 4, a placeholder otherwise) and `add_sums` come from
 // `sgm_sums.wgsl` (32-bit atomics) or `sgm_sums64.wgsl` (64-bit), as the host assembles the kernel.
@@ -162,7 +162,7 @@ struct Right {
 // row. Two 16-byte reads instead of four 8-byte ones: the invocations of a path read 32 bytes
 // apart, so each read spans the same cache lines, half as many times.
 fn right_codes(q: vec2<i32>, d0: u32) -> Right {
-    let s = i32(pair_stride(params.width));
+    let s = i32(params.pair_stride);
     let j0 = q.x - params.min_disparity - i32(d0) - 3;
     let odd = j0 & 1;
     let region = select(0, i32(params.height) * s, odd != 0);

@@ -35,7 +35,7 @@ mod frame;
 use crate::gpu_layout::{specialise, Adapter, Layout};
 use crate::reference::{DIRS, DIRS4};
 use crate::sgm::{check_pair, SgmParams};
-use frame::{dispatch, encode_pair, EncodeKey, Frame};
+use frame::{dispatch, encode_pair, pair_stride, EncodeKey, Frame};
 use misslam_framework::gpu::{wgsl_with_uses, GpuContext, GpuError};
 
 /// WGSL of the kernels.
@@ -412,7 +412,7 @@ impl SgmGpu {
                 p.census_width / 2,
                 p.census_height / 2,
                 right_words,
-                0,
+                pair_stride(w) as u32,
                 0,
                 0,
             ],
@@ -431,6 +431,10 @@ impl SgmGpu {
             0, // groups_x, below
             volume_words,
             right_words,
+            pair_stride(w) as u32,
+            0,
+            0,
+            0,
         ];
         let mut total_groups = 0u32;
         for &(dx, dy) in dirs {
@@ -444,7 +448,7 @@ impl SgmGpu {
             agg_params.extend([dx as u32, dy as u32, paths, total_groups]);
             total_groups += paths.div_ceil(layout.paths);
         }
-        agg_params.resize(12 + 8 * 4, 0);
+        agg_params.resize(16 + 8 * 4, 0);
         let groups_x = total_groups.min(max_x);
         agg_params[9] = groups_x;
         write_uniform(q, &f.aggregate_u, &mut self.uniforms[1], &agg_params);

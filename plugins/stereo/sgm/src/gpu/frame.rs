@@ -3,6 +3,13 @@
 
 use super::*;
 
+/// Codes per row in each copy (even, odd) of the right image's census codes: the row and a margin
+/// of 4 on either side, even, so that any four consecutive codes are two aligned pairs
+/// (`sgm_census.wgsl`, `sgm_paths.wgsl`'s `right_codes`).
+pub(super) fn pair_stride(w: usize) -> usize {
+    (w + 9) & !1
+}
+
 /// The buffers of one size and layout, with their bind groups.
 pub(super) struct Frame {
     pub(super) w: usize,
@@ -183,7 +190,7 @@ impl SgmGpu {
         let mask = buffer("sgm mask", 4 * image_words, U::STORAGE | U::COPY_DST);
         let codes = buffer("sgm census", px * 8, U::STORAGE);
         // The right image's codes, each row twice with margins (`sgm_census.wgsl`).
-        let pair_stride = ((w + 9) & !1) as u64;
+        let pair_stride = pair_stride(w) as u64;
         let pairs = buffer(
             "sgm census pairs",
             2 * h as u64 * pair_stride * 8,
@@ -210,7 +217,7 @@ impl SgmGpu {
         let staging = [0, 1].map(|_| buffer("sgm readback", px * 4, U::MAP_READ | U::COPY_DST));
         let uniform = |label: &str, bytes: u64| buffer(label, bytes, U::UNIFORM | U::COPY_DST);
         let census_u = uniform("sgm census params", 32);
-        let aggregate_u = uniform("sgm aggregate params", 48 + 8 * 16);
+        let aggregate_u = uniform("sgm aggregate params", 64 + 8 * 16);
         let select_u = uniform("sgm select params", 48);
         let median_u = uniform("sgm median params", 16);
         let speckle_u = uniform("sgm speckle params", 16);
