@@ -180,3 +180,31 @@ fn swapping_a_plugin_by_override_drops_params_it_does_not_take() {
         "swap.toml: --set gray.device=gpu: node `gray` (image.nop): unknown parameter `device`; this plugin takes no parameters"
     );
 }
+
+/// The nodes built on the ED graph (the deformation solver and both fusion nodes) refuse a
+/// wrong `graph` or `solver` value when the graph is built, naming the table and the field.
+#[test]
+fn ed_nodes_refuse_a_wrong_graph_or_solver_value_naming_it() {
+    let registry = builtin_registry();
+    for (file, node) in [
+        ("graphs/deform_heart.toml", "ed"),
+        ("graphs/mis_slam.toml", "fusion"),
+        ("graphs/template_dff.toml", "fusion"),
+    ] {
+        for (set, table, field) in [
+            ("solver.weights.reg=-1", "solver", "weights.reg"),
+            ("graph.spacing=0", "graph", "spacing"),
+        ] {
+            let sets = [format!("{node}.{set}")];
+            let g = graph::load(Path::new(file), &registry, &sets).expect("a valid graph");
+            let err = misslam::framework::Runtime::build(g)
+                .err()
+                .unwrap_or_else(|| panic!("{file}: {set} was accepted"))
+                .to_string();
+            assert!(
+                err.contains(&format!("parameter `{table}`")) && err.contains(field),
+                "{file}: {set}: {err}"
+            );
+        }
+    }
+}

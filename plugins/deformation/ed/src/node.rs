@@ -115,13 +115,22 @@ pub struct EdNode {
     scratch: Scratch,
 }
 
-fn check(p: &BatchParams) -> Result<(), BuildError> {
-    p.graph
+/// The `graph` and `solver` tables of a node built on the ED graph (the deformation nodes and
+/// both fusion nodes), each error naming its table.
+pub fn check_graph_and_solver(
+    graph: &GraphParams,
+    solver: &SolverParams,
+) -> Result<(), BuildError> {
+    graph
         .validate()
         .map_err(|m| BuildError::param("graph", m))?;
-    p.solver
+    solver
         .validate()
-        .map_err(|m| BuildError::param("solver", m))?;
+        .map_err(|m| BuildError::param("solver", m))
+}
+
+fn check(p: &BatchParams) -> Result<(), BuildError> {
+    check_graph_and_solver(&p.graph, &p.solver)?;
     if p.model_stride == 0 {
         return Err(BuildError::param("model_stride", "must be at least 1"));
     }

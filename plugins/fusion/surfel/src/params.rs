@@ -77,12 +77,7 @@ impl Default for Params {
 
 impl Params {
     pub(crate) fn check(&self) -> Result<(), BuildError> {
-        self.graph
-            .validate()
-            .map_err(|m| BuildError::param("graph", m))?;
-        self.solver
-            .validate()
-            .map_err(|m| BuildError::param("solver", m))?;
+        misslam_deformation_ed::node::check_graph_and_solver(&self.graph, &self.solver)?;
         if self.stride == 0 {
             return Err(BuildError::param("stride", "must be at least 1"));
         }

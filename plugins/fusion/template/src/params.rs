@@ -200,12 +200,7 @@ fn positive(v: f64, field: &str) -> Result<(), BuildError> {
 
 impl Params {
     pub(crate) fn check(&self) -> Result<(), BuildError> {
-        self.graph
-            .validate()
-            .map_err(|m| BuildError::param("graph", m))?;
-        self.solver
-            .validate()
-            .map_err(|m| BuildError::param("solver", m))?;
+        misslam_deformation_ed::node::check_graph_and_solver(&self.graph, &self.solver)?;
         if let Some(t) = &self.template_from_scan {
             t.validate()
                 .map_err(|m| BuildError::param("template_from_scan", m))?;
