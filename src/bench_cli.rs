@@ -95,6 +95,10 @@ pub(crate) enum BenchCommand {
         /// Summed costs by 32-bit atomics even where the adapter has 64-bit ones.
         #[arg(long)]
         atomics32: bool,
+        /// Block on each pair's fence at once, without polling for it first (`depth.sgm`'s
+        /// `gpu_wait = "block"`; by default it polls on a discrete GPU).
+        #[arg(long)]
+        block: bool,
         /// Timed runs (medians are reported).
         #[arg(long, default_value_t = 50)]
         repeat: usize,
@@ -307,6 +311,7 @@ pub(crate) fn run(which: BenchCommand) -> anyhow::Result<()> {
             volumes,
             exchange,
             atomics32,
+            block,
             repeat,
             out,
         } => {
@@ -315,6 +320,11 @@ pub(crate) fn run(which: BenchCommand) -> anyhow::Result<()> {
                 paths,
                 gpu_volumes: volumes,
                 gpu_exchange: exchange,
+                gpu_wait: if block {
+                    misslam_depth_sgm::sgm::GpuWait::Block
+                } else {
+                    misslam_depth_sgm::sgm::GpuWait::Auto
+                },
                 ..Default::default()
             };
             let pair = left.as_deref().zip(right.as_deref());

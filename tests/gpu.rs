@@ -187,9 +187,24 @@ fn sgm_pairs_in_flight_come_back_in_order_as_run_gives_them() {
     for p in [p, summed_params(&p)] {
         pairs_in_flight(&ctx, &p);
     }
+    // The host polling for each map before it blocks (on a discrete GPU by default), and
+    // blocking at once: the same maps.
+    use misslam_depth_sgm::sgm::GpuWait;
+    let waits = [GpuWait::Spin, GpuWait::Block].map(|gpu_wait| {
+        let q = misslam_depth_sgm::sgm::SgmParams { gpu_wait, ..p };
+        pairs_in_flight(&ctx, &q)
+    });
+    assert!(
+        waits[0] == waits[1],
+        "spinning and blocking gave other maps"
+    );
 }
 
-fn pairs_in_flight(ctx: &misslam::framework::GpuContext, p: &misslam_depth_sgm::sgm::SgmParams) {
+/// Five pairs submitted two at a time, each identical to its run alone; returns the maps' bits.
+fn pairs_in_flight(
+    ctx: &misslam::framework::GpuContext,
+    p: &misslam_depth_sgm::sgm::SgmParams,
+) -> Vec<Vec<u32>> {
     use misslam_depth_sgm::gpu::{SgmGpu, IN_FLIGHT};
     let (w, h) = (97, 41);
     let pairs: Vec<_> = (0..5).map(|k| stereo_scene(w, h, 11 + 3 * k)).collect();
@@ -232,6 +247,7 @@ fn pairs_in_flight(ctx: &misslam::framework::GpuContext, p: &misslam_depth_sgm::
     assert!(err.contains("collect it first"), "{err}");
     assert_eq!(bits(&k.collect(ctx).unwrap().0), alone[0]);
     assert_eq!(bits(&k.run(ctx, l, r, w, h, None, p).unwrap().0), alone[0]);
+    alone
 }
 
 #[test]

@@ -25,8 +25,7 @@ struct Dir {
     dy: i32,
     // Paths of this direction.
     paths: u32,
-    // Index of its first workgroup (each takes PATHS paths).
-    first: u32,
+    pad: u32,
 }
 
 struct Params {
@@ -65,20 +64,10 @@ const BIG: u32 = 0x3fffffffu;
 // The right image's codes, each row twice (`sgm_census.wgsl`), two codes per element.
 @group(0) @binding(5) var<storage, read> pairs: array<vec4<u32>>;
 @group(0) @binding(3) var<storage, read_write> volumes: array<u32>;
+// The workgroups' dispatch order (see `workgroup_paths`).
+@group(0) @binding(6) var<storage, read> order: array<u32>;
 // The volume of sums (SUMMED = 1; binding 4, a placeholder otherwise) and `add_sums` come from
 // `sgm_sums.wgsl` (32-bit atomics) or `sgm_sums64.wgsl` (64-bit), as the host assembles the kernel.
-
-// The direction of a workgroup (`group` counts all directions' workgroups): its index.
-fn direction(group: u32) -> u32 {
-    var r = 0u;
-    loop {
-        if (r + 1u >= params.dirs || group < params.dir[r + 1u].first) {
-            break;
-        }
-        r = r + 1u;
-    }
-    return r;
-}
 
 // A workgroup's share of the paths: its direction `dir`, that direction's step (dx, dy) and number
 // of paths, and its first path (it takes `per_group` consecutive ones).
@@ -90,13 +79,19 @@ struct Group {
     first: u32,
 }
 
-// The share of workgroup `wid` (uniform for the workgroup, so every invocation returns or none
-// does when `first` is past the paths).
+// The share of workgroup `wid`, from the host's dispatch order (`order`: the direction in the
+// high 3 bits, the block of `per_group` paths in the low 29; the longest paths first). Uniform for
+// the workgroup, so every invocation returns or none does when `first` is past the paths (the
+// grid's padding past the order included).
 fn workgroup_paths(wid: vec3<u32>, per_group: u32) -> Group {
     let group = wid.x + wid.y * params.groups_x;
-    let r = direction(group);
+    if (group >= arrayLength(&order)) {
+        return Group(0u, 0, 0, 0u, 1u);
+    }
+    let e = order[group];
+    let r = e >> 29u;
     let d = params.dir[r];
-    return Group(r, d.dx, d.dy, d.paths, (group - d.first) * per_group);
+    return Group(r, d.dx, d.dy, d.paths, (e & 0x1fffffffu) * per_group);
 }
 
 fn start(path: u32, dx: i32, dy: i32) -> vec2<i32> {

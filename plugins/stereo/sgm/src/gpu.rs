@@ -5,7 +5,8 @@
 //!    invocation holding four consecutive disparities in a vec4; they exchange their neighbouring
 //!    costs and their minimum at each pixel by subgroup shuffles where the adapter's subgroups
 //!    have one size that holds a path (`gpu_exchange`), else through workgroup memory with one
-//!    barrier per pixel;
+//!    barrier per pixel; the workgroups take their paths in the host's order, the longest first
+//!    (`gpu_layout::workgroup_order`);
 //!    each direction writes its own volume of L, as bytes when the largest cost plus P2 fits
 //!    one (the default parameters) and as u16 otherwise; or (`gpu_volumes`: on a discrete GPU,
 //!    and where the adapter's storage buffers cannot hold a volume per direction) every
@@ -21,7 +22,8 @@
 //!
 //! [`SgmGpu::run`] does one pair; [`SgmGpu::submit`] and [`SgmGpu::collect`] keep two in flight,
 //! so that a stream of pairs runs at the pace of the GPU instead of the GPU's time plus the
-//! host's (upload, submission, the wait and the copy of the map).
+//! host's (upload, submission, the wait and the copy of the map). On a discrete GPU the host
+//! polls for the map before it blocks on the fence (`gpu_wait`).
 //! The buffers live across calls (reallocated when the size or the disparity layout changes);
 //! every kernel runs in one compute pass, or a pass per stage timed by GPU timestamps
 //! ([`SgmGpu::set_breakdown`]). The layout for a configuration and an adapter is
@@ -32,9 +34,9 @@ use std::collections::HashMap;
 
 mod frame;
 
-use crate::gpu_layout::{specialise, Adapter, Layout};
+use crate::gpu_layout::{paths_of, specialise, workgroup_order, Adapter, Layout};
 use crate::reference::{DIRS, DIRS4};
-use crate::sgm::{check_pair, SgmParams};
+use crate::sgm::{check_pair, GpuWait, SgmParams};
 use frame::{dispatch, encode_pair, pair_stride, EncodeKey, Frame};
 use misslam_framework::gpu::{wgsl_with_uses, GpuContext, GpuError};
 
@@ -153,6 +155,10 @@ pub struct SgmGpu {
     next_slot: usize,
 }
 
+/// How long [`SgmGpu::collect`] polls before it blocks ([`SgmParams::gpu_wait`]; a pair
+/// takes about a millisecond on an H100).
+const SPIN: std::time::Duration = std::time::Duration::from_millis(5);
+
 /// The most pairs [`SgmGpu::submit`] keeps in flight (one per readback buffer).
 pub const IN_FLIGHT: usize = 2;
 
@@ -171,6 +177,8 @@ struct Pending {
     ran: [bool; STAGES as usize],
     t_all: std::time::Instant,
     t_submit: std::time::Instant,
+    /// Poll for the map before blocking ([`SgmParams::gpu_wait`]).
+    spin: bool,
 }
 
 /// Writes `data` into uniform buffer `buf` unless `last` says it already holds it.
@@ -438,14 +446,8 @@ impl SgmGpu {
         ];
         let mut total_groups = 0u32;
         for &(dx, dy) in dirs {
-            let paths = if dy == 0 {
-                hu
-            } else if dx == 0 {
-                wu
-            } else {
-                wu + hu - 1
-            };
-            agg_params.extend([dx as u32, dy as u32, paths, total_groups]);
+            let paths = paths_of(wu, hu, (dx, dy));
+            agg_params.extend([dx as u32, dy as u32, paths, 0]);
             total_groups += paths.div_ceil(layout.paths);
         }
         agg_params.resize(16 + 8 * 4, 0);
@@ -609,6 +611,11 @@ impl SgmGpu {
             ran,
             t_all,
             t_submit,
+            spin: match p.gpu_wait {
+                GpuWait::Auto => ctx.is_discrete(),
+                GpuWait::Spin => true,
+                GpuWait::Block => false,
+            },
         });
         Ok(())
     }
@@ -627,6 +634,7 @@ impl SgmGpu {
             ran,
             t_all,
             t_submit,
+            spin,
         } = self
             .in_flight
             .pop_front()
@@ -634,12 +642,45 @@ impl SgmGpu {
         let f = self.frame.as_ref().ok_or("no GPU buffers")?;
         let q = &ctx.queue;
         let ts = mapped.len() > 1;
-        ctx.device
-            .poll(wgpu::PollType::Wait {
-                submission_index: Some(index),
-                timeout: None,
-            })
-            .map_err(|e| e.to_string())?;
+        let mut results: Vec<Option<Result<(), String>>> = vec![None; mapped.len()];
+        let take = |results: &mut Vec<Option<Result<(), String>>>| {
+            for (r, rx) in results.iter_mut().zip(&mapped) {
+                if r.is_none() {
+                    match rx.try_recv() {
+                        Ok(v) => *r = Some(v.map_err(|e| e.to_string())),
+                        Err(std::sync::mpsc::TryRecvError::Empty) => {}
+                        Err(e) => *r = Some(Err(e.to_string())),
+                    }
+                }
+            }
+            results.iter().all(Option::is_some)
+        };
+        // With `gpu_wait` spinning (a discrete GPU by default) the host polls without blocking
+        // for up to `SPIN` first, as CUDA's default schedule does where a core is free: a
+        // thread blocked on the fence wakes later than the GPU finishes. Else, and after
+        // `SPIN`, it blocks.
+        let mut ready = false;
+        if spin {
+            let until = std::time::Instant::now() + SPIN;
+            loop {
+                ctx.device
+                    .poll(wgpu::PollType::Poll)
+                    .map_err(|e| e.to_string())?;
+                ready = take(&mut results);
+                if ready || std::time::Instant::now() >= until {
+                    break;
+                }
+                std::hint::spin_loop();
+            }
+        }
+        if !ready {
+            ctx.device
+                .poll(wgpu::PollType::Wait {
+                    submission_index: Some(index),
+                    timeout: None,
+                })
+                .map_err(|e| e.to_string())?;
+        }
         let t_copy = std::time::Instant::now();
         let mut d = Vec::new();
         let mut stamps = Vec::new();
@@ -648,17 +689,14 @@ impl SgmGpu {
         // Every mapping is waited for and undone, even after an error, so that the readback
         // buffers can be used again.
         let mut failure = None;
-        for (k, (buf, rx)) in buffers.iter().zip(mapped).enumerate() {
-            match rx.recv() {
-                Ok(Ok(())) => {}
-                Ok(Err(e)) => {
-                    failure.get_or_insert(e.to_string());
-                    continue;
-                }
-                Err(e) => {
-                    failure.get_or_insert(e.to_string());
-                    continue;
-                }
+        for (k, ((buf, rx), r)) in buffers.iter().zip(&mapped).zip(results).enumerate() {
+            let r = r.unwrap_or_else(|| match rx.recv() {
+                Ok(v) => v.map_err(|e| e.to_string()),
+                Err(e) => Err(e.to_string()),
+            });
+            if let Err(e) = r {
+                failure.get_or_insert(e);
+                continue;
             }
             match buf.slice(..).get_mapped_range() {
                 Ok(view) if k == 0 => {

@@ -137,6 +137,76 @@ impl Layout {
     }
 }
 
+/// Pixels on path `path` of direction (dx, dy) in a `w` x `h` image: the path starts where its
+/// predecessor would leave the image and walks to the opposite border (the kernels' `start` and
+/// `length` in `sgm_paths.wgsl`). Rows: one path per row; columns: one per column; diagonals:
+/// one per column of the first row of their direction, then one per row below (or above) it.
+pub(crate) fn path_length(w: u32, h: u32, (dx, dy): (isize, isize), path: u32) -> u32 {
+    let (w, h, p) = (i64::from(w), i64::from(h), i64::from(path));
+    let x0 = if dx > 0 { 0 } else { w - 1 };
+    let y0 = if dy > 0 { 0 } else { h - 1 };
+    let (x, y) = if dy == 0 {
+        (x0, p)
+    } else if p < w {
+        (p, y0)
+    } else {
+        let k = p - w + 1;
+        (x0, if dy > 0 { y0 + k } else { y0 - k })
+    };
+    let mut n = i64::MAX;
+    match dx.signum() {
+        1 => n = n.min(w - x),
+        -1 => n = n.min(x + 1),
+        _ => {}
+    }
+    match dy.signum() {
+        1 => n = n.min(h - y),
+        -1 => n = n.min(y + 1),
+        _ => {}
+    }
+    n.max(0) as u32
+}
+
+/// Bits of a [`workgroup_order`] entry that hold the block (`sgm_paths.wgsl`'s
+/// `workgroup_paths` splits it the same way).
+pub(crate) const ORDER_BLOCK_BITS: u32 = 29;
+
+/// Paths of direction (dx, dy) in a `w` x `h` image.
+pub(crate) fn paths_of(w: u32, h: u32, (dx, dy): (isize, isize)) -> u32 {
+    if dy == 0 {
+        h
+    } else if dx == 0 {
+        w
+    } else {
+        w + h - 1
+    }
+}
+
+/// The aggregation's workgroups in dispatch order: entry g is what workgroup g walks, its
+/// direction's index in `dirs` (the high 3 bits) and its block of `per_group` consecutive paths
+/// (the low [`ORDER_BLOCK_BITS`]). The blocks of every direction are sorted by their longest path, longest
+/// first (ties in direction and path order): the aggregation's time is set by its longest
+/// paths (640 steps along a 640x480 row), and in index order the GPU started some of them only
+/// once a wave of short diagonals had finished. The order changes when each path runs, not what
+/// it computes.
+pub(crate) fn workgroup_order(w: u32, h: u32, dirs: &[(isize, isize)], per_group: u32) -> Vec<u32> {
+    let mut blocks: Vec<(u32, u32)> = Vec::new();
+    for (r, &dir) in dirs.iter().enumerate() {
+        let paths = paths_of(w, h, dir);
+        for b in 0..paths.div_ceil(per_group) {
+            let first = b * per_group;
+            let longest = (first..(first + per_group).min(paths))
+                .map(|path| path_length(w, h, dir, path))
+                .max()
+                .unwrap_or(0);
+            blocks.push((longest, ((r as u32) << ORDER_BLOCK_BITS) | b));
+        }
+    }
+    // Stable: equal lengths keep direction and path order.
+    blocks.sort_by_key(|&(longest, _)| std::cmp::Reverse(longest));
+    blocks.into_iter().map(|(_, e)| e).collect()
+}
+
 /// What the layout's choice knows of the adapter.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Adapter {
@@ -287,6 +357,66 @@ mod tests {
         };
         let l = Layout::of(&q);
         assert_eq!((l.threads, l.paths, l.bytes), (40, 1, 2));
+    }
+
+    #[test]
+    fn paths_cover_every_pixel_once_per_direction_and_the_order_puts_the_longest_first() {
+        use crate::reference::{DIRS, DIRS4};
+        for (w, h) in [(7u32, 5u32), (5, 7), (1, 4), (6, 1), (64, 48)] {
+            for &(dx, dy) in &DIRS {
+                // The paths found from the pixels: each starts where its predecessor is outside
+                // the image, and walks until it leaves; their lengths cover every pixel once.
+                let inside = |x: i64, y: i64| x >= 0 && y >= 0 && x < w as i64 && y < h as i64;
+                let mut walked = Vec::new();
+                for y in 0..h as i64 {
+                    for x in 0..w as i64 {
+                        if !inside(x - dx as i64, y - dy as i64) {
+                            let mut n = 0;
+                            while inside(x + n * dx as i64, y + n * dy as i64) {
+                                n += 1;
+                            }
+                            walked.push(n as u32);
+                        }
+                    }
+                }
+                let mut lengths: Vec<u32> = (0..paths_of(w, h, (dx, dy)))
+                    .map(|path| path_length(w, h, (dx, dy), path))
+                    .collect();
+                assert_eq!(lengths.iter().sum::<u32>(), w * h, "{w}x{h} ({dx}, {dy})");
+                lengths.sort_unstable();
+                walked.sort_unstable();
+                assert_eq!(lengths, walked, "{w}x{h} ({dx}, {dy})");
+            }
+            for (dirs, per) in [(&DIRS[..], 2u32), (&DIRS4[..], 1), (&DIRS[..], 8)] {
+                let order = workgroup_order(w, h, dirs, per);
+                // Every block of every direction once.
+                let mut want: Vec<u32> = Vec::new();
+                for (r, &d) in dirs.iter().enumerate() {
+                    let blocks = paths_of(w, h, d).div_ceil(per);
+                    want.extend((0..blocks).map(|b| ((r as u32) << ORDER_BLOCK_BITS) | b));
+                }
+                let mut got = order.clone();
+                got.sort_unstable();
+                want.sort_unstable();
+                assert_eq!(got, want);
+                // Longest first.
+                let longest = |e: u32| {
+                    let d = dirs[(e >> ORDER_BLOCK_BITS) as usize];
+                    let first = (e & ((1 << ORDER_BLOCK_BITS) - 1)) * per;
+                    (first..(first + per).min(paths_of(w, h, d)))
+                        .map(|p| path_length(w, h, d, p))
+                        .max()
+                        .unwrap()
+                };
+                assert!(order.windows(2).all(|p| longest(p[0]) >= longest(p[1])));
+            }
+        }
+        // 640x480: the rows' paths (640 pixels) come first, all 480 of each direction.
+        let order = workgroup_order(640, 480, &DIRS, 2);
+        assert!(order[..480]
+            .iter()
+            .all(|&e| matches!(e >> ORDER_BLOCK_BITS, 0 | 4)));
+        assert_eq!(order[480] >> ORDER_BLOCK_BITS, 1);
     }
 
     #[test]

@@ -204,6 +204,16 @@ impl SgmGpu {
             U::STORAGE | U::COPY_DST,
         );
         let placeholder = buffer("sgm volumes placeholder", 16, U::STORAGE);
+        // The aggregation's workgroups, longest paths first.
+        let directions: &[(isize, isize)] = if dirs == 8 { &DIRS } else { &DIRS4 };
+        let order = workgroup_order(w as u32, h as u32, directions, l.paths);
+        let order_buf = buffer(
+            "sgm aggregate order",
+            4 * order.len() as u64,
+            U::STORAGE | U::COPY_DST,
+        );
+        ctx.queue
+            .write_buffer(&order_buf, 0, bytemuck::cast_slice(&order));
         let (per_direction, sums) = if l.summed {
             (&placeholder, &volumes)
         } else {
@@ -233,7 +243,15 @@ impl SgmGpu {
         let aggregate_bg = bind(
             "sgm aggregate",
             agg,
-            &[&aggregate_u, &images, &codes, per_direction, sums, &pairs],
+            &[
+                &aggregate_u,
+                &images,
+                &codes,
+                per_direction,
+                sums,
+                &pairs,
+                &order_buf,
+            ],
         );
         let select_bg = bind("sgm select", sel, &[&select_u, &volumes, &mask, &disp]);
         let median_bg = bind("sgm median", &self.median, &[&median_u, &disp, &out]);
@@ -284,7 +302,16 @@ impl SgmGpu {
             volumes,
             prepared: Default::default(),
             sums_clean: Default::default(),
-            _keep: vec![codes, pairs, placeholder, parent, size, disp, out],
+            _keep: vec![
+                codes,
+                pairs,
+                placeholder,
+                order_buf,
+                parent,
+                size,
+                disp,
+                out,
+            ],
         });
     }
 
