@@ -1,5 +1,6 @@
 //! `render_threads`: renderers ahead of the graph, each a [`Phantom`] of its own on a thread of
-//! its own, handing their frames to the node over bounded channels.
+//! its own, handing their frames to the node over bounded channels; `prerender_frames`: frames
+//! rendered before the first one is handed out.
 
 use crate::{Phantom, PhantomFrame, PhantomNode};
 
@@ -64,10 +65,70 @@ impl Ahead {
     }
 }
 
+/// Frames rendered up front, handed out in order.
+pub(crate) struct Prerendered {
+    /// The index of the next frame held.
+    next: u64,
+    frames: std::collections::VecDeque<PhantomFrame>,
+}
+
+impl Prerendered {
+    /// Renders frames `first .. first + n` (fewer where the sequence ends) on the pool's
+    /// threads, each worker with a clone of `phantom`.
+    fn render(phantom: &Phantom, first: u64, n: u64) -> Prerendered {
+        use rayon::prelude::*;
+        let t = std::time::Instant::now();
+        let rendered: Vec<Option<PhantomFrame>> = (first..first + n)
+            .into_par_iter()
+            .map_init(|| phantom.clone(), |p, i| p.render(i))
+            .collect();
+        let frames: std::collections::VecDeque<_> = rendered.into_iter().map_while(|f| f).collect();
+        tracing::info!(
+            "source.phantom: {} frames rendered up front in {:.2} s",
+            frames.len(),
+            t.elapsed().as_secs_f64()
+        );
+        Prerendered {
+            next: first,
+            frames,
+        }
+    }
+
+    /// Frame `index` if it is the next one held; `Err` when the graph asked for another.
+    fn take(&mut self, index: u64) -> Result<Option<PhantomFrame>, String> {
+        if index != self.next {
+            return Err(format!(
+                "the graph asked for frame {index}, the frames rendered up front were at {}",
+                self.next
+            ));
+        }
+        self.next += 1;
+        Ok(self.frames.pop_front())
+    }
+}
+
 impl PhantomNode {
-    /// Frame `index`: from the renderers ahead where they run and are at that frame, else
-    /// rendered here (a logged fall-back for the rest of the run).
+    /// Frame `index`: from the frames rendered up front while they last, then from the
+    /// renderers ahead where they run and are at that frame, else rendered here (a logged
+    /// fall-back for the rest of the run).
     pub(crate) fn frame(&mut self, index: u64) -> Option<PhantomFrame> {
+        let pre = u64::from(self.phantom.params.prerender_frames);
+        if pre > 0 {
+            let held = self
+                .prerendered
+                .get_or_insert_with(|| Prerendered::render(&self.phantom, index, pre));
+            match held.take(index) {
+                Ok(Some(frame)) => return Some(frame),
+                // All handed out (or the sequence ended): go on as `render_threads` says.
+                Ok(None) => {}
+                Err(e) => {
+                    tracing::warn!("source.phantom: {e}; rendering each frame when asked");
+                    self.phantom.params.render_threads = 1;
+                }
+            }
+            self.phantom.params.prerender_frames = 0;
+            self.prerendered = None;
+        }
         let n = self.phantom.params.render_threads as usize;
         if n > 1 && self.ahead.is_none() {
             match Ahead::start(&self.phantom, index, n) {
@@ -126,6 +187,7 @@ mod tests {
                 phantom,
                 rest,
                 ahead: None,
+                prerendered: None,
             }
         };
         // Three renderers from frame 2 to the end of the sequence.
@@ -146,6 +208,65 @@ mod tests {
         assert!(skip.ahead.is_none(), "fell back after the skip");
         let err = Phantom::new(small(0), 3).err().unwrap();
         assert!(err.contains("render_threads"), "{err}");
+    }
+
+    #[test]
+    fn frames_rendered_up_front_are_the_same_and_the_rest_follow() {
+        let mut reference = Phantom::new(small(1), 3).unwrap();
+        let node = |render_threads, prerender_frames| {
+            let p = Params {
+                prerender_frames,
+                ..small(render_threads)
+            };
+            let phantom = Phantom::new(p, 3).unwrap();
+            let rest = Arc::new(phantom.rest_mesh());
+            PhantomNode {
+                phantom,
+                rest,
+                ahead: None,
+                prerendered: None,
+            }
+        };
+        // Three up front from frame 1, then two renderers ahead to the end of the sequence.
+        let mut pre = node(2, 3);
+        for i in 1..7 {
+            let want = reference.render(i).unwrap();
+            let got = pre.frame(i).expect("a frame before the end");
+            assert!(same(&got, &want), "frame {i}");
+            let held = pre.prerendered.as_ref().map(|p| p.frames.len());
+            if i < 4 {
+                assert_eq!(held, Some((3 - i) as usize), "frame {i} came from memory");
+                assert!(pre.ahead.is_none());
+            } else {
+                assert!(
+                    held.is_none() && pre.ahead.is_some(),
+                    "frame {i} from the renderers"
+                );
+            }
+        }
+        assert!(pre.frame(7).is_none(), "the stream ends after `frames`");
+        // More up front than the sequence holds: all of it, then the end.
+        let mut all = node(1, 50);
+        for i in 0..7 {
+            assert!(same(&all.frame(i).unwrap(), &reference.render(i).unwrap()));
+        }
+        assert!(all.frame(7).is_none());
+        // A skipped frame: rendered when asked from then on, still the same frames.
+        let mut skip = node(1, 4);
+        for i in [0, 1, 3, 4] {
+            assert!(same(&skip.frame(i).unwrap(), &reference.render(i).unwrap()));
+        }
+        assert!(skip.prerendered.is_none(), "fell back after the skip");
+        // Too much memory: refused, naming the field.
+        let big = Params {
+            prerender_frames: 100_000,
+            ..Params::default()
+        };
+        let err = Phantom::new(big, 3).err().unwrap();
+        assert!(
+            err.contains("prerender_frames") && err.contains("GB"),
+            "{err}"
+        );
     }
 
     #[test]

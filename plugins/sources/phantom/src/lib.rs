@@ -124,6 +124,14 @@ pub struct Params {
     /// would while the graph measures its own speed (`graph.pipeline`). The frames are the
     /// same; memory grows by about 2N frames.
     pub render_threads: u32,
+    /// Frames rendered before the first one is handed out (0: none): the graph then reads them
+    /// from memory, as from a capture card, and no renderer shares the cores with it while it
+    /// runs, which is how the SLAM stages' own speed is measured (`misslam run ... --set
+    /// src.prerender_frames=150`). Rendered on the pool's threads, a frame at a time from the
+    /// first frame asked for; later frames, or all after a skipped one, are rendered as
+    /// `render_threads` says. The frames are the same. About 40 bytes per pixel and frame:
+    /// at most 8 GB in all.
+    pub prerender_frames: u32,
 }
 
 impl Default for Params {
@@ -169,8 +177,22 @@ impl Default for Params {
             motion_blur_samples: 1,
             exposure_s: 0.02,
             render_threads: 1,
+            prerender_frames: 0,
         }
     }
+}
+
+/// The most memory `prerender_frames` may take.
+const PRERENDER_MAX_BYTES: u64 = 8_000_000_000;
+
+/// About how much memory `p.prerender_frames` frames take, with `vertices` in the mesh: per
+/// pixel two RGB views, depth, disparity and the rest point; per vertex its position, normal
+/// and colour, and two triangles.
+fn prerender_bytes(p: &Params, vertices: usize) -> u64 {
+    let pixel = 2 * 3 + 4 + 4 + 12;
+    let vertex = 12 + 12 + 3 + 2 * 12;
+    u64::from(p.prerender_frames)
+        * (u64::from(p.width) * u64::from(p.height) * pixel + vertices as u64 * vertex)
 }
 
 /// Everything the phantom knows about one frame.
@@ -281,6 +303,19 @@ impl Phantom {
             nx * ny <= 4_000_000,
             "mesh_step_mm",
             "makes a mesh of more than 4 million vertices",
+        )?;
+        let bytes = prerender_bytes(p, nx * ny);
+        check(
+            bytes <= PRERENDER_MAX_BYTES,
+            "prerender_frames",
+            &format!(
+                "would hold about {:.1} GB of frames ({} of {}x{}), more than {} GB: prerender fewer",
+                bytes as f64 / 1e9,
+                p.prerender_frames,
+                p.width,
+                p.height,
+                PRERENDER_MAX_BYTES / 1_000_000_000
+            ),
         )?;
         let (default_beat, default_breath) = match p.scene {
             Scene::Heart => (3.0, 1.0),
@@ -675,6 +710,8 @@ pub struct PhantomNode {
     rest: Arc<Mesh>,
     /// The renderers ahead (`render_threads` > 1), started at the first frame asked for.
     ahead: Option<Ahead>,
+    /// The frames rendered up front (`prerender_frames`), from the first frame asked for.
+    prerendered: Option<ahead::Prerendered>,
 }
 
 impl Node for PhantomNode {
@@ -759,6 +796,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
                 phantom,
                 rest,
                 ahead: None,
+                prerendered: None,
             })
         },
     ))
