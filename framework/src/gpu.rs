@@ -131,6 +131,7 @@ impl GpuContext {
             max_compute_invocations_per_workgroup: adapter
                 .limits()
                 .max_compute_invocations_per_workgroup,
+            max_compute_workgroup_size_x: adapter.limits().max_compute_workgroup_size_x,
             max_storage_buffers_per_shader_stage: adapter
                 .limits()
                 .max_storage_buffers_per_shader_stage,

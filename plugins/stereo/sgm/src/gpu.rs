@@ -64,8 +64,6 @@ pub const SPECKLE_WGSL: &str = include_str!("../../../../shaders/stereo/sgm_spec
 const MAX_D: u32 = 1024;
 /// The widest image (the selection keeps a row's right winners in workgroup memory).
 const MAX_W: usize = 4096;
-/// Invocations of the selection kernel per row.
-const SELECT_THREADS: u32 = 256;
 
 /// Milliseconds of one GPU pair.
 #[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
@@ -286,6 +284,9 @@ impl SgmGpu {
             subgroup: ctx.subgroup_size(),
             discrete: ctx.is_discrete(),
             int64_atomics: self.int64_atomics && ctx.has_int64_atomics(),
+            max_workgroup: limits
+                .max_compute_workgroup_size_x
+                .min(limits.max_compute_invocations_per_workgroup),
         };
         Layout::choose(p, (w, h, dirs), a)
     }

@@ -160,7 +160,7 @@ impl SgmGpu {
             &[
                 ("BYTES", sel_bytes),
                 ("DIRS", sel_dirs),
-                ("THREADS", SELECT_THREADS),
+                ("THREADS", l.select_threads),
             ],
         )?;
         let pipelines = (
