@@ -298,7 +298,7 @@ pub fn random_dot_pair(w: usize, h: usize, nd: u32) -> (Vec<u8>, Vec<u8>) {
 
 /// SGM on the GPU and on the CPU on one pair (the files, or [`random_dot_pair`] at `size`):
 /// median times, the GPU's stage breakdown and the parity of the two outputs. `int64_atomics`
-/// false keeps the summed costs to 32-bit atomics ([`misslam_depth_sgm::gpu::SgmGpu::set_int64_atomics`]);
+/// false keeps the summed costs to 32-bit atomics ([`misslam_depth_sgm::gpu::SgmGpu::set_int64_atomics`]).
 pub fn sgm_gpu(
     pair: Option<(&Path, &Path)>,
     size: (usize, usize),

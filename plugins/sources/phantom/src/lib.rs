@@ -127,10 +127,10 @@ pub struct Params {
     /// Frames rendered before the first one is handed out (0: none): the graph then reads them
     /// from memory, as from a capture card, and no renderer shares the cores with it while it
     /// runs, which is how the SLAM stages' own speed is measured (`misslam run ... --set
-    /// src.prerender_frames=150`). Rendered on the pool's threads, a frame at a time from the
-    /// first frame asked for; later frames, or all after a skipped one, are rendered as
-    /// `render_threads` says. The frames are the same. About 40 bytes per pixel and frame:
-    /// at most 8 GB in all.
+    /// src.prerender_frames=150`). Rendered in parallel on the pool's threads (a clone of the
+    /// phantom per worker) from the first frame asked for; later frames, or all after a skipped
+    /// one, are rendered as `render_threads` says. The frames are the same. About 40 bytes per
+    /// pixel and frame: at most 8 GB in all.
     pub prerender_frames: u32,
 }
 
