@@ -177,19 +177,22 @@ mod tests {
             && a.pose.world_from_camera == b.pose.world_from_camera
     }
 
+    /// A node on the phantom of `p` (seed 3), as the registry builds it.
+    fn node_of(p: Params) -> PhantomNode {
+        let phantom = Phantom::new(p, 3).unwrap();
+        let rest = Arc::new(phantom.rest_mesh());
+        PhantomNode {
+            phantom,
+            rest,
+            ahead: None,
+            prerendered: None,
+        }
+    }
+
     #[test]
     fn renderers_ahead_deliver_the_same_frames_and_fall_back_on_a_skip() {
         let mut reference = Phantom::new(small(1), 3).unwrap();
-        let node = |n| {
-            let phantom = Phantom::new(small(n), 3).unwrap();
-            let rest = Arc::new(phantom.rest_mesh());
-            PhantomNode {
-                phantom,
-                rest,
-                ahead: None,
-                prerendered: None,
-            }
-        };
+        let node = |n| node_of(small(n));
         // Three renderers from frame 2 to the end of the sequence.
         let mut ahead = node(3);
         for i in 2..7 {
@@ -214,18 +217,10 @@ mod tests {
     fn frames_rendered_up_front_are_the_same_and_the_rest_follow() {
         let mut reference = Phantom::new(small(1), 3).unwrap();
         let node = |render_threads, prerender_frames| {
-            let p = Params {
+            node_of(Params {
                 prerender_frames,
                 ..small(render_threads)
-            };
-            let phantom = Phantom::new(p, 3).unwrap();
-            let rest = Arc::new(phantom.rest_mesh());
-            PhantomNode {
-                phantom,
-                rest,
-                ahead: None,
-                prerendered: None,
-            }
+            })
         };
         // Three up front from frame 1, then two renderers ahead to the end of the sequence.
         let mut pre = node(2, 3);
