@@ -527,7 +527,12 @@ fn depth_sgm_on_the_gpu_scores_as_on_the_cpu() {
         "{err}"
     );
     // The GPU twice: a volume of costs per direction, and the costs summed into one.
-    for (device, volumes) in [("cpu", "auto"), ("gpu", "per_direction"), ("gpu", "summed")] {
+    // The host's wait for the map through the graph too (`gpu_wait`; the output is the same).
+    for (device, volumes, wait) in [
+        ("cpu", "auto", "auto"),
+        ("gpu", "per_direction", "block"),
+        ("gpu", "summed", "spin"),
+    ] {
         let sets: Vec<String> = [
             "src.width=160",
             "src.height=120",
@@ -540,6 +545,7 @@ fn depth_sgm_on_the_gpu_scores_as_on_the_cpu() {
         .chain([
             format!("depth.device=\"{device}\""),
             format!("depth.gpu_volumes=\"{volumes}\""),
+            format!("depth.gpu_wait=\"{wait}\""),
         ])
         .collect();
         let report = common::run_graph_file(
