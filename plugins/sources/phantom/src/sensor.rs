@@ -15,7 +15,9 @@ pub(crate) fn quantize(v: f32, sigma: f32, noise: &mut Noise, rng: &mut SplitMix
         v
     };
     // Round half up of a non-negative value: the same as `round` here, without the libm call.
-    (noisy.clamp(0.0, 255.0) + 0.5) as u8
+    // Through i32: the value is in range, and one conversion instruction does it where `as u8`
+    // adds the saturation's compares (NaN goes to 0 either way).
+    (noisy.clamp(0.0, 255.0) + 0.5) as i32 as u8
 }
 
 /// Entries of the table of standard normal samples the sensor noise draws from.
