@@ -369,8 +369,8 @@ impl Phantom {
                     }
                 }
                 let half = [0.5 * p.extent_mm[0], 0.5 * p.extent_mm[1]];
-                let atlas = Atlas::bake([-half[0], -half[1]], half, ATLAS_MM, |x, y| {
-                    texture::albedo(x, y, &tex)
+                let atlas = Atlas::bake([-half[0], -half[1]], half, ATLAS_MM, |x, y, cache| {
+                    texture::albedo_with(x, y, &tex, cache)
                 });
                 (
                     rest,
@@ -415,8 +415,8 @@ impl Phantom {
                 let rest_normals = mesh_normals(&rest, &m.triangles);
                 let (lo, hi) = bounds(&rest);
                 let plane = |a: usize, b: usize, shift: f32| {
-                    Atlas::bake([lo[a], lo[b]], [hi[a], hi[b]], ATLAS_MM, |x, y| {
-                        texture::albedo(x + shift, y, &tex)
+                    Atlas::bake([lo[a], lo[b]], [hi[a], hi[b]], ATLAS_MM, |x, y, cache| {
+                        texture::albedo_with(x + shift, y, &tex, cache)
                     })
                 };
                 let albedo = Albedo::Triplanar {

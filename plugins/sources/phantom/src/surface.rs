@@ -4,6 +4,8 @@
 use misslam_framework::nalgebra::Vector3;
 use rayon::prelude::*;
 
+use crate::texture::GradientCache;
+
 /// How albedo is looked up: on the procedural organ's parameter plane, or triplanar on a
 /// template mesh (three planar atlases blended by the rest normal).
 pub(crate) enum Albedo {
@@ -81,15 +83,21 @@ impl Atlas {
         lo: [f32; 2],
         hi: [f32; 2],
         step: f32,
-        f: impl Fn(f32, f32) -> [f32; 3] + Sync,
+        f: impl Fn(f32, f32, &mut GradientCache) -> [f32; 3] + Sync,
     ) -> Self {
         let nx = ((hi[0] - lo[0]) / step).ceil() as usize + 3;
         let ny = ((hi[1] - lo[1]) / step).ceil() as usize + 3;
         let origin = [lo[0] - step, lo[1] - step];
         let mut texels = vec![[0.0; 3]; nx * ny];
         texels.par_chunks_mut(nx).enumerate().for_each(|(j, row)| {
+            // A row's texels share their noise's lattice cells.
+            let mut cache = GradientCache::new();
             for (i, t) in row.iter_mut().enumerate() {
-                *t = f(origin[0] + i as f32 * step, origin[1] + j as f32 * step);
+                *t = f(
+                    origin[0] + i as f32 * step,
+                    origin[1] + j as f32 * step,
+                    &mut cache,
+                );
             }
         });
         Atlas {

@@ -21,6 +21,15 @@ fn lattice(ix: i32, iy: i32, seed: u32) -> f32 {
     h as f32 / u32::MAX as f32
 }
 
+/// `x.floor()` as an integer and as a float, for |x| < 2^31 (texture coordinates are a few
+/// thousand at most): the same values as `floor`, which without SSE4.1 is a libm call.
+#[inline]
+fn floor(x: f32) -> (i32, f32) {
+    let i = x as i32;
+    let i = if (i as f32) > x { i - 1 } else { i };
+    (i, i as f32)
+}
+
 #[inline]
 fn smooth(t: f32) -> f32 {
     t * t * (3.0 - 2.0 * t)
@@ -28,8 +37,7 @@ fn smooth(t: f32) -> f32 {
 
 /// Value noise in [0, 1] with period 1 in both axes.
 pub fn value_noise(x: f32, y: f32, seed: u32) -> f32 {
-    let (fx, fy) = (x.floor(), y.floor());
-    let (ix, iy) = (fx as i32, fy as i32);
+    let ((ix, fx), (iy, fy)) = (floor(x), floor(y));
     let (tx, ty) = (smooth(x - fx), smooth(y - fy));
     let a = lattice(ix, iy, seed);
     let b = lattice(ix + 1, iy, seed);
@@ -42,16 +50,72 @@ pub fn value_noise(x: f32, y: f32, seed: u32) -> f32 {
 
 /// Gradient (Perlin) noise in about [-1, 1]: smooth, with curved zero crossings.
 pub fn gradient_noise(x: f32, y: f32, seed: u32) -> f32 {
-    let (fx, fy) = (x.floor(), y.floor());
-    let (ix, iy) = (fx as i32, fy as i32);
+    gradient_noise_with(x, y, seed, &mut GradientCache::new())
+}
+
+/// The unit gradient of lattice point (gx, gy): (cos a, sin a) of an angle hashed from it.
+#[inline]
+fn lattice_gradient(gx: i32, gy: i32, seed: u32) -> [f32; 2] {
+    let h = hash(
+        (gx as u32).wrapping_mul(0x9e37_79b1) ^ hash((gy as u32) ^ seed.wrapping_mul(0x85eb_ca6b)),
+    );
+    let a = (h as f32 / u32::MAX as f32) * std::f32::consts::TAU;
+    [a.cos(), a.sin()]
+}
+
+/// Entries of a [`GradientCache`].
+const GRADIENT_CACHE: usize = 256;
+
+/// The lattice gradients last computed, direct-mapped by lattice point and seed. Neighbouring
+/// samples of a texture row fall in the same lattice cells (a cell spans 8 to 120 texels of the
+/// atlas), so most of [`gradient_noise`]'s cosines and sines are read back instead of computed;
+/// a value read back is the one computed, so the noise is the same bits.
+pub struct GradientCache {
+    keys: [(i32, i32, u32); GRADIENT_CACHE],
+    valid: [bool; GRADIENT_CACHE],
+    gradients: [[f32; 2]; GRADIENT_CACHE],
+}
+
+impl Default for GradientCache {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl GradientCache {
+    /// An empty cache.
+    pub fn new() -> Self {
+        GradientCache {
+            keys: [(0, 0, 0); GRADIENT_CACHE],
+            valid: [false; GRADIENT_CACHE],
+            gradients: [[0.0; 2]; GRADIENT_CACHE],
+        }
+    }
+
+    #[inline]
+    fn gradient(&mut self, gx: i32, gy: i32, seed: u32) -> [f32; 2] {
+        let slot = ((gx as u32).wrapping_mul(0x9e37_79b1)
+            ^ (gy as u32).wrapping_mul(0x85eb_ca6b)
+            ^ seed.wrapping_mul(0xc2b2_ae35))
+            >> 24;
+        let slot = slot as usize % GRADIENT_CACHE;
+        let key = (gx, gy, seed);
+        if !(self.valid[slot] && self.keys[slot] == key) {
+            self.keys[slot] = key;
+            self.valid[slot] = true;
+            self.gradients[slot] = lattice_gradient(gx, gy, seed);
+        }
+        self.gradients[slot]
+    }
+}
+
+/// [`gradient_noise`], reading the lattice gradients through `cache`.
+pub fn gradient_noise_with(x: f32, y: f32, seed: u32, cache: &mut GradientCache) -> f32 {
+    let ((ix, fx), (iy, fy)) = (floor(x), floor(y));
     let (tx, ty) = (x - fx, y - fy);
-    let grad = |gx: i32, gy: i32, dx: f32, dy: f32| {
-        let h = hash(
-            (gx as u32).wrapping_mul(0x9e37_79b1)
-                ^ hash((gy as u32) ^ seed.wrapping_mul(0x85eb_ca6b)),
-        );
-        let a = (h as f32 / u32::MAX as f32) * std::f32::consts::TAU;
-        a.cos() * dx + a.sin() * dy
+    let mut grad = |gx: i32, gy: i32, dx: f32, dy: f32| {
+        let [c, s] = cache.gradient(gx, gy, seed);
+        c * dx + s * dy
     };
     let fade = |t: f32| t * t * t * (t * (t * 6.0 - 15.0) + 10.0);
     let (u, v) = (fade(tx), fade(ty));
@@ -89,6 +153,12 @@ pub struct TextureParams {
 
 /// Albedo (linear 0..1 RGB) at a rest-surface point (x, y) in mm.
 pub fn albedo(x: f32, y: f32, p: &TextureParams) -> [f32; 3] {
+    albedo_with(x, y, p, &mut GradientCache::new())
+}
+
+/// [`albedo`], its gradient noise read through `cache` (the same values; faster over
+/// neighbouring points, as when an atlas is baked row by row).
+pub fn albedo_with(x: f32, y: f32, p: &TextureParams, cache: &mut GradientCache) -> [f32; 3] {
     let s = p.seed;
     // Low-texture mask: large blobs where detail fades.
     let blob = fbm(x / 25.0, y / 25.0, 3, s ^ 0x51);
@@ -103,11 +173,12 @@ pub fn albedo(x: f32, y: f32, p: &TextureParams) -> [f32; 3] {
     let fine = fbm(x / 0.8, y / 0.8, 4, s ^ 0x77) - 0.5;
     // Vessels: zero crossings of domain-warped gradient noise are curved, branching lines.
     let vs = p.vessel_scale_mm.max(0.5);
-    let wx = x + 0.8 * vs * gradient_noise(x / (3.0 * vs), y / (3.0 * vs), s ^ 0x13);
-    let wy = y + 0.8 * vs * gradient_noise(x / (3.0 * vs) + 5.3, y / (3.0 * vs), s ^ 0x17);
-    let line = |scale: f32, width: f32, seed: u32| {
-        let n = gradient_noise(wx / scale, wy / scale, seed)
-            + 0.3 * gradient_noise(wx / (0.4 * scale), wy / (0.4 * scale), seed ^ 0x5);
+    let wx = x + 0.8 * vs * gradient_noise_with(x / (3.0 * vs), y / (3.0 * vs), s ^ 0x13, cache);
+    let wy =
+        y + 0.8 * vs * gradient_noise_with(x / (3.0 * vs) + 5.3, y / (3.0 * vs), s ^ 0x17, cache);
+    let mut line = |scale: f32, width: f32, seed: u32| {
+        let n = gradient_noise_with(wx / scale, wy / scale, seed, cache)
+            + 0.3 * gradient_noise_with(wx / (0.4 * scale), wy / (0.4 * scale), seed ^ 0x5, cache);
         // Distance to the zero crossing in noise units, about mm / scale.
         (1.0 - (n.abs() * scale / width)).clamp(0.0, 1.0)
     };
@@ -139,6 +210,61 @@ mod tests {
             assert_eq!(v, fbm(x, y, 4, 7));
         }
         assert_ne!(value_noise(0.5, 0.5, 1), value_noise(0.5, 0.5, 2));
+    }
+
+    #[test]
+    fn the_integer_floor_is_floor() {
+        for i in -40_000..40_000 {
+            let x = i as f32 * 0.013_7;
+            for x in [x, x.floor(), -x.floor(), x + 1e-3] {
+                let (k, f) = floor(x);
+                // Equal values (the floor of -0 is +0 here, which no sum below tells apart).
+                assert_eq!(f, x.floor(), "{x}");
+                assert_eq!(k as f32, x.floor(), "{x}");
+            }
+        }
+    }
+
+    #[test]
+    fn cached_gradients_give_the_same_bits() {
+        // One cache over a texture row's worth of points, several seeds and scales, with the
+        // slots' collisions that brings: every value is the uncached one, bit for bit.
+        let mut cache = GradientCache::new();
+        let p = TextureParams {
+            seed: 11,
+            vessel_scale_mm: 1.3,
+            low_texture_fraction: 0.3,
+        };
+        for j in 0..40 {
+            for i in 0..400 {
+                let (x, y) = (i as f32 * 0.1 - 20.0, j as f32 * 0.37 - 7.0);
+                for (scale, seed) in [(0.5f32, 1u32), (2.0, 2), (7.0, 0x13)] {
+                    let a = gradient_noise_with(x / scale, y / scale, seed, &mut cache);
+                    assert_eq!(
+                        a.to_bits(),
+                        gradient_noise(x / scale, y / scale, seed).to_bits()
+                    );
+                }
+                let c = albedo_with(x, y, &p, &mut cache);
+                assert_eq!(c.map(f32::to_bits), albedo(x, y, &p).map(f32::to_bits));
+            }
+        }
+    }
+
+    #[test]
+    fn a_slot_shared_by_two_seeds_holds_the_gradient_of_each() {
+        // Two seeds whose entries for the same lattice point share a slot: each read must
+        // recompute the other's, not return it.
+        let slot = |seed: u32| (seed.wrapping_mul(0xc2b2_ae35) >> 24) as usize % GRADIENT_CACHE;
+        let other = (2..100_000u32).find(|&s| slot(s) == slot(1)).unwrap();
+        let mut cache = GradientCache::new();
+        for _ in 0..3 {
+            for seed in [1, other] {
+                let a = gradient_noise_with(0.3, 0.6, seed, &mut cache);
+                assert_eq!(a.to_bits(), gradient_noise(0.3, 0.6, seed).to_bits());
+            }
+        }
+        assert_ne!(gradient_noise(0.3, 0.6, 1), gradient_noise(0.3, 0.6, other));
     }
 
     #[test]
