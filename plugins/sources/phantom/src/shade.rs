@@ -478,6 +478,8 @@ mod tests {
                 _ => {}
             }
         }
-        let _ = std::fs::remove_file(sheet);
+        if let Some(dir) = sheet.parent() {
+            let _ = std::fs::remove_dir_all(dir);
+        }
     }
 }
