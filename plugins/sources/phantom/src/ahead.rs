@@ -7,6 +7,8 @@ use crate::{Phantom, PhantomFrame, PhantomNode};
 /// Renderers on threads of their own, each rendering every `n`-th frame from its own first
 /// one (`render_threads`); the node takes their frames in turn.
 pub(crate) struct Ahead {
+    /// A number of its own in this process, in its threads' names (`ph{id} render {k}`).
+    id: u32,
     /// The first frame: renderer k renders first + k, first + k + n, ...
     first: u64,
     /// The next frame index the renderers deliver.
@@ -16,19 +18,36 @@ pub(crate) struct Ahead {
 }
 
 impl Ahead {
-    /// Starts `n` renderers, clones of `phantom`, at frame `first`.
-    pub(crate) fn start(phantom: &Phantom, first: u64, n: usize) -> Result<Ahead, String> {
+    /// Starts `n` renderers, clones of `phantom`, at frame `first`. Each renders on a
+    /// one-thread pool of its own at nice value `nice` (`Params::render_nice`): the rows of its
+    /// frames never wait in the shared pool's queue in front of the graph's stages.
+    pub(crate) fn start(
+        phantom: &Phantom,
+        first: u64,
+        n: usize,
+        nice: u32,
+    ) -> Result<Ahead, String> {
+        static STARTED: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+        let id = STARTED.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let mut rx = Vec::with_capacity(n);
         for k in 0..n {
             let mut phantom = phantom.clone();
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(1)
+                .thread_name(move |_| format!("ph{id} render {k}"))
+                .start_handler(move |_| lower_priority(nice))
+                .build()
+                .map_err(|e| format!("could not start a phantom renderer: {e}"))?;
             // One frame waiting and one being rendered, per renderer.
             let (tx, r) = std::sync::mpsc::sync_channel(1);
+            // This thread waits on the pool's one worker, which renders; a panic there comes
+            // back here, ends the thread, and the node hears that the renderer stopped.
             std::thread::Builder::new()
-                .name(format!("phantom render {k}"))
+                .name(format!("ph{id} ahead {k}"))
                 .spawn(move || {
                     let mut index = first + k as u64;
                     loop {
-                        let frame = phantom.render(index);
+                        let frame = pool.install(|| phantom.render(index));
                         let end = frame.is_none();
                         // The node hung up (dropped or fell back): stop.
                         if tx.send(frame).is_err() || end {
@@ -40,7 +59,11 @@ impl Ahead {
                 .map_err(|e| format!("could not start a phantom renderer: {e}"))?;
             rx.push(r);
         }
+        tracing::info!(
+            "source.phantom: {n} renderers ahead from frame {first}, threads `ph{id} render 0..{n}` at nice {nice}"
+        );
         Ok(Ahead {
+            id,
             first,
             next: first,
             rx,
@@ -57,12 +80,44 @@ impl Ahead {
             ));
         }
         let k = ((index - self.first) % self.rx.len() as u64) as usize;
-        let frame = self.rx[k]
-            .recv()
-            .map_err(|_| format!("the renderer of frame {index} stopped"))?;
+        let frame = self.rx[k].recv().map_err(|_| {
+            format!(
+                "the renderer of frame {index} (thread `ph{} render {k}`) stopped",
+                self.id
+            )
+        })?;
         self.next += 1;
         Ok(frame)
     }
+}
+
+/// Lowers the calling thread's CPU priority to nice value `nice` (Linux: `setpriority` on a
+/// thread id sets that thread's alone); a thread already at `nice` or lower keeps its own. A
+/// refusal is logged and the thread keeps its priority.
+fn lower_priority(nice: u32) {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: `gettid`, `getpriority` and `setpriority` take no pointers and act on this
+        // thread only.
+        let (now, r) = unsafe {
+            let tid = libc::gettid() as libc::id_t;
+            let now = libc::getpriority(libc::PRIO_PROCESS, tid);
+            let r = if (nice as libc::c_int) > now {
+                libc::setpriority(libc::PRIO_PROCESS, tid, nice as libc::c_int)
+            } else {
+                0
+            };
+            (now, r)
+        };
+        if r != 0 {
+            tracing::warn!(
+                "source.phantom: could not lower a renderer's priority from nice {now} to {nice}: {}",
+                std::io::Error::last_os_error()
+            );
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = nice;
 }
 
 /// Frames rendered up front, handed out in order.
@@ -131,7 +186,7 @@ impl PhantomNode {
         }
         let n = self.phantom.params.render_threads as usize;
         if n > 1 && self.ahead.is_none() {
-            match Ahead::start(&self.phantom, index, n) {
+            match Ahead::start(&self.phantom, index, n, self.phantom.params.render_nice) {
                 Ok(a) => self.ahead = Some(a),
                 Err(e) => {
                     tracing::warn!("source.phantom: {e}; rendering each frame when asked");
@@ -211,6 +266,72 @@ mod tests {
         assert!(skip.ahead.is_none(), "fell back after the skip");
         let err = Phantom::new(small(0), 3).err().unwrap();
         assert!(err.contains("render_threads"), "{err}");
+    }
+
+    /// The nice value and CPU ticks of this process's threads named `prefix*` (Linux).
+    #[cfg(target_os = "linux")]
+    fn threads(prefix: &str) -> Vec<(i64, u64)> {
+        let mut out = Vec::new();
+        for task in std::fs::read_dir("/proc/self/task").unwrap().flatten() {
+            let Ok(stat) = std::fs::read_to_string(task.path().join("stat")) else {
+                continue;
+            };
+            // `pid (comm) state ...`: the comm may hold spaces, the fields after it do not.
+            let (open, close) = (stat.find('(').unwrap(), stat.rfind(')').unwrap());
+            if !stat[open + 1..close].starts_with(prefix) {
+                continue;
+            }
+            let f: Vec<&str> = stat[close + 2..].split_whitespace().collect();
+            // Fields 14 and 15 (utime, stime) and 19 (nice), counted from 1 at the pid.
+            let ticks = f[11].parse::<u64>().unwrap() + f[12].parse::<u64>().unwrap();
+            out.push((f[16].parse().unwrap(), ticks));
+        }
+        out
+    }
+
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn renderers_ahead_shade_on_threads_of_their_own_at_the_priority_asked() {
+        // SAFETY: no pointers; this thread's own nice value.
+        let own = i64::from(unsafe { libc::getpriority(libc::PRIO_PROCESS, 0) });
+        let params = |render_nice| Params {
+            width: 320,
+            height: 240,
+            focal_px: 350.0,
+            frames: 400,
+            render_threads: 2,
+            render_nice,
+            ..Params::default()
+        };
+        // Lowest priority: both renderers' workers at nice 19, and they do the shading (their
+        // CPU time grows while the node takes frames; on the shared pool it would stay 0).
+        let mut low = node_of(params(19));
+        low.frame(0).unwrap();
+        let name = format!("ph{} render ", low.ahead.as_ref().unwrap().id);
+        let mut ticks = 0;
+        for i in 1..200 {
+            low.frame(i).unwrap();
+            let workers = threads(&name);
+            assert_eq!(workers.len(), 2, "{workers:?}");
+            assert!(
+                workers.iter().all(|&(nice, _)| nice == own.max(19)),
+                "{workers:?}"
+            );
+            ticks = workers.iter().map(|w| w.1).sum();
+            if ticks > 0 {
+                break;
+            }
+        }
+        assert!(ticks > 0, "the renderers' own threads never ran");
+        drop(low);
+        // Nice 0: the process's own priority (a thread never raises its own).
+        let mut same = node_of(params(0));
+        same.frame(0).unwrap();
+        let workers = threads(&format!("ph{} render ", same.ahead.as_ref().unwrap().id));
+        assert_eq!(workers.len(), 2, "{workers:?}");
+        assert!(workers.iter().all(|&(nice, _)| nice == own), "{workers:?}");
+        let err = Phantom::new(params(20), 3).err().unwrap();
+        assert!(err.contains("render_nice"), "{err}");
     }
 
     #[test]

@@ -122,8 +122,15 @@ pub struct Params {
     /// when the graph asks for it; N > 1 runs N renderers on threads of their own, each a frame
     /// or two ahead (frame k on renderer k mod N), so the phantom delivers frames as a camera
     /// would while the graph measures its own speed (`graph.pipeline`). The frames are the
-    /// same; memory grows by about 2N frames.
+    /// same; memory grows by about 2N frames. Each renderer shades its frame on one thread of
+    /// its own, not on the pool the graph's stages share (see `render_nice`).
     pub render_threads: u32,
+    /// The CPU priority of the renderers ahead (`render_threads` > 1) as a Unix nice value,
+    /// 0 to 19: 19 (the default) is the lowest, so a stage of the graph that wants a core takes
+    /// it from a renderer at once and the renderers use the cores the graph leaves idle, as a
+    /// camera's frames cost the graph nothing; 0 shares the cores equally. Linux only (elsewhere
+    /// the renderers keep the process's priority).
+    pub render_nice: u32,
     /// Frames rendered before the first one is handed out (0: none): the graph then reads them
     /// from memory, as from a capture card, and no renderer shares the cores with it while it
     /// runs, which is how the SLAM stages' own speed is measured (`misslam run ... --set
@@ -177,6 +184,7 @@ impl Default for Params {
             motion_blur_samples: 1,
             exposure_s: 0.02,
             render_threads: 1,
+            render_nice: 19,
             prerender_frames: 0,
         }
     }
@@ -297,6 +305,7 @@ impl Phantom {
             "render_threads",
             "must be in 1..=64",
         )?;
+        check(p.render_nice <= 19, "render_nice", "must be in 0..=19")?;
         let nx = (p.extent_mm[0] / p.mesh_step_mm).round() as usize + 1;
         let ny = (p.extent_mm[1] / p.mesh_step_mm).round() as usize + 1;
         check(
