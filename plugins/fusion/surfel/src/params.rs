@@ -52,7 +52,7 @@ impl Default for Params {
         Params {
             graph: GraphParams::default(),
             // Each factorisation also serves the next iteration: the same accuracy, fusion 1.1
-            // to 1.3x faster (see `SolverParams::reuse_factorisation` and the README's "Speed").
+            // to 1.3x faster (see `SolverParams::reuse_factorisation` and `docs/pipeline.md`, "Speed").
             solver: SolverParams {
                 reuse_factorisation: 1,
                 ..SolverParams::default()
