@@ -9,6 +9,7 @@ use std::collections::HashMap;
 use std::path::PathBuf;
 use std::str::FromStr;
 use std::sync::Arc;
+use std::time::Duration;
 
 use crate::graph::Graph;
 use crate::payload::{Mesh, Payload, StereoCalib};
@@ -70,6 +71,79 @@ pub struct Recorder {
     /// The mesh last logged at each path, held so that an output repeated frame after frame (the
     /// same `Arc`, e.g. a static template) is logged once: Rerun shows the latest value anyway.
     meshes: HashMap<String, Arc<Mesh>>,
+    /// How long [`Recorder::flush`], and the recorder's drop, wait for a viewer to take what is
+    /// left; `None`: until it is written (a file).
+    flush_timeout: Option<Duration>,
+    /// A flush timed out: the drop does not wait for the viewer again.
+    gave_up: std::sync::atomic::AtomicBool,
+}
+
+impl Drop for Recorder {
+    /// Closes the stream. A file is written to its end. A viewer that does not take the rest
+    /// within the timeout (gone, or never answering) is left behind with a warning: Rerun's gRPC
+    /// client, dropped, waits for it for ever, so the stream is dropped on a thread of its own,
+    /// which the process's exit ends.
+    fn drop(&mut self) {
+        let rec = std::mem::replace(&mut self.rec, rerun::RecordingStream::disabled());
+        let Some(timeout) = self.flush_timeout else {
+            drop(rec);
+            return;
+        };
+        let (done, wait) = std::sync::mpsc::channel();
+        let closing = std::thread::Builder::new()
+            .name("rerun close".into())
+            .spawn(move || {
+                drop(rec);
+                done.send(()).ok();
+            });
+        if self.gave_up.load(std::sync::atomic::Ordering::Relaxed) {
+            return;
+        }
+        if closing.is_ok() && wait.recv_timeout(timeout).is_err() {
+            tracing::warn!(
+                "rerun: the viewer did not take the rest of the recording within {:.1} s; the run's results are saved, the viewer may miss its last frames",
+                timeout.as_secs_f64()
+            );
+        }
+    }
+}
+
+/// The default viewer address of `--rerun connect`.
+const DEFAULT_VIEWER: &str = "rerun+http://127.0.0.1:9876/proxy";
+
+/// How long the end of a streamed run waits for the viewer to take the rest of the recording.
+const STREAM_FLUSH_TIMEOUT: Duration = Duration::from_secs(20);
+
+/// Checks that something listens at the host and port of a viewer URL
+/// (`scheme://host:port/...`), so that `--rerun connect` with no viewer running fails before the
+/// run instead of the run waiting for one at its end. A URL without a port is not checked.
+fn probe_viewer(url: &str) -> Result<(), RecorderError> {
+    use std::net::ToSocketAddrs;
+    let rest = url.split_once("://").map_or(url, |(_, r)| r);
+    let authority = rest.split('/').next().unwrap_or(rest);
+    if authority
+        .rsplit_once(':')
+        .is_none_or(|(_, p)| p.parse::<u16>().is_err())
+    {
+        return Ok(());
+    }
+    let no_viewer = |why: String| {
+        RecorderError(format!(
+            "no Rerun viewer at {url} ({why}): start one with `rerun` (pip install rerun-sdk==0.36.3), or record to a file with --rerun save:FILE.rrd"
+        ))
+    };
+    let addrs: Vec<_> = authority
+        .to_socket_addrs()
+        .map_err(|e| no_viewer(format!("cannot resolve {authority}: {e}")))?
+        .collect();
+    let mut last = String::from("no address");
+    for a in &addrs {
+        match std::net::TcpStream::connect_timeout(a, Duration::from_secs(2)) {
+            Ok(_) => return Ok(()),
+            Err(e) => last = format!("{a}: {e}"),
+        }
+    }
+    Err(no_viewer(last))
 }
 
 impl Recorder {
@@ -87,14 +161,22 @@ impl Recorder {
                 builder.save(path)
             }
             RerunMode::Spawn => builder.spawn(),
-            RerunMode::Connect(None) => builder.connect_grpc(),
-            RerunMode::Connect(Some(url)) => builder.connect_grpc_opts(url.clone()),
+            RerunMode::Connect(url) => {
+                let url = url.as_deref().unwrap_or(DEFAULT_VIEWER);
+                probe_viewer(url)?;
+                builder.connect_grpc_opts(url.to_owned())
+            }
         }
         .map_err(|e| RecorderError(e.to_string()))?;
         Ok(Some(Recorder {
             rec,
             trajectories: HashMap::new(),
             meshes: HashMap::new(),
+            gave_up: false.into(),
+            flush_timeout: match mode {
+                RerunMode::Save(_) | RerunMode::Off => None,
+                RerunMode::Spawn | RerunMode::Connect(_) => Some(STREAM_FLUSH_TIMEOUT),
+            },
         }))
     }
 
@@ -330,11 +412,27 @@ impl Recorder {
         Ok(())
     }
 
-    /// Blocks until everything logged so far has been written (or sent).
+    /// Blocks until everything logged so far has been written to the file, or sent to the
+    /// viewer; a viewer that has not taken it within 20 s (gone, or never there) is an error, and
+    /// what was not sent is dropped.
     pub fn flush(&self) -> Result<(), RecorderError> {
-        self.rec
-            .flush_blocking()
-            .map_err(|e| RecorderError(e.to_string()))
+        let r = match self.flush_timeout {
+            None => self.rec.flush_blocking(),
+            Some(t) => self.rec.flush_with_timeout(t),
+        };
+        if r.is_err() && self.flush_timeout.is_some() {
+            self.gave_up
+                .store(true, std::sync::atomic::Ordering::Relaxed);
+        }
+        r.map_err(|e| {
+            RecorderError(match self.flush_timeout {
+                Some(t) => format!(
+                    "the viewer did not take the rest of the recording within {} s: {e}",
+                    t.as_secs()
+                ),
+                None => e.to_string(),
+            })
+        })
     }
 }
 
@@ -394,6 +492,42 @@ mod tests {
     }
 
     #[test]
+    fn connecting_to_no_viewer_fails_before_the_run_and_a_silent_one_times_out() {
+        // A port nothing listens on: refused at once, naming the address and what to do.
+        let free = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let port = free.local_addr().unwrap().port();
+        drop(free);
+        let mode: RerunMode = format!("connect:127.0.0.1:{port}").parse().unwrap();
+        let err = Recorder::open(&mode, "t").err().expect("no viewer there");
+        let msg = err.to_string();
+        assert!(
+            msg.contains(&format!("127.0.0.1:{port}")) && msg.contains("save:"),
+            "{msg}"
+        );
+        // Something that accepts the connection but never answers as a viewer: the flush at the
+        // end of the run gives up after its timeout instead of waiting for ever.
+        let silent = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let port = silent.local_addr().unwrap().port();
+        let mode: RerunMode = format!("connect:127.0.0.1:{port}").parse().unwrap();
+        let mut r = Recorder::open(&mode, "t").unwrap().expect("a recorder");
+        r.flush_timeout = Some(Duration::from_millis(300));
+        r.rec.log("x", &rerun::Scalars::single(1.0)).unwrap();
+        let (done, wait) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            r.flush().ok();
+            drop(r);
+            done.send(()).ok();
+        });
+        assert!(
+            wait.recv_timeout(Duration::from_secs(20)).is_ok(),
+            "flushing and closing a stream to a silent viewer did not end"
+        );
+        drop(silent);
+        // A URL without a port is left to Rerun.
+        assert!(probe_viewer("rerun+http://localhost/proxy").is_ok());
+    }
+
+    #[test]
     fn a_mesh_repeated_as_the_same_arc_is_logged_once() {
         let (rec, storage) = rerun::RecordingStreamBuilder::new("misslam-test")
             .memory()
@@ -402,6 +536,8 @@ mod tests {
             rec,
             trajectories: HashMap::new(),
             meshes: HashMap::new(),
+            flush_timeout: None,
+            gave_up: false.into(),
         };
         let mesh = Arc::new(Mesh {
             vertices: vec![[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]],
