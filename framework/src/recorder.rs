@@ -427,8 +427,8 @@ impl Recorder {
         r.map_err(|e| {
             RecorderError(match self.flush_timeout {
                 Some(t) => format!(
-                    "the viewer did not take the rest of the recording within {} s: {e}",
-                    t.as_secs()
+                    "the viewer did not take the rest of the recording within {:.1} s: {e}",
+                    t.as_secs_f64()
                 ),
                 None => e.to_string(),
             })
