@@ -117,6 +117,61 @@ fn bad_rerun_mode_is_a_one_line_error() {
 }
 
 #[test]
+fn an_unwritable_output_folder_and_an_absent_viewer_are_one_line_errors() {
+    // The output folder under a regular file: named once, with its cause once.
+    let dir = std::env::temp_dir().join(format!("misslam-cli-out-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("a-file");
+    std::fs::write(&file, b"").unwrap();
+    let out_dir = file.join("out");
+    let out = misslam()
+        .args([
+            "run",
+            "graphs/phantom.toml",
+            "--set",
+            "graph.frames.count=1",
+            "--out",
+        ])
+        .arg(&out_dir)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    let line = err
+        .lines()
+        .find(|l| l.starts_with("error:"))
+        .unwrap_or_default();
+    assert!(line.contains(&out_dir.display().to_string()), "{err}");
+    assert_eq!(line.matches("(os error").count(), 1, "{line}");
+    // `--rerun connect` with no viewer at the address: refused before the run, saying what to do.
+    let free = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = free.local_addr().unwrap().port();
+    drop(free);
+    let out = misslam()
+        .args([
+            "run",
+            "graphs/phantom.toml",
+            "--set",
+            "graph.frames.count=1",
+            "--out",
+        ])
+        .arg(dir.join("run"))
+        .args(["--rerun", &format!("connect:127.0.0.1:{port}")])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains(&format!(
+            "no Rerun viewer at rerun+http://127.0.0.1:{port}/proxy"
+        )) && err.contains("--rerun save:"),
+        "{err}"
+    );
+    assert!(!dir.join("run/metrics.json").exists(), "the run went ahead");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
 fn inspect_on_hamlyn_saves_a_recording_the_rerun_cli_verifies() {
     let Some(data) = common::data_set("hamlyn20") else {
         return;

@@ -60,12 +60,12 @@ pub enum RunError {
         message: String,
     },
     /// The output folder or `metrics.json` could not be written.
-    #[error("{path}: {source}")]
+    #[error("{path}: {cause}")]
     Io {
         /// Path.
         path: PathBuf,
-        /// Cause.
-        source: std::io::Error,
+        /// Cause, in the message (not a `source`, so that an error chain prints it once).
+        cause: std::io::Error,
     },
     /// The recording failed.
     #[error(transparent)]
@@ -194,9 +194,9 @@ impl Runtime {
             .out_dir
             .clone()
             .unwrap_or_else(|| self.graph.out.clone());
-        std::fs::create_dir_all(&out_dir).map_err(|source| RunError::Io {
+        std::fs::create_dir_all(&out_dir).map_err(|cause| RunError::Io {
             path: out_dir.clone(),
-            source,
+            cause,
         })?;
         let mut recorder = opts.recorder.take();
         if let Some(r) = &recorder {
@@ -373,11 +373,11 @@ impl Runtime {
         let metrics_path = out_dir.join("metrics.json");
         let json = serde_json::to_string_pretty(&metrics).map_err(|e| RunError::Io {
             path: metrics_path.clone(),
-            source: std::io::Error::other(e),
+            cause: std::io::Error::other(e),
         })?;
-        std::fs::write(&metrics_path, json).map_err(|source| RunError::Io {
+        std::fs::write(&metrics_path, json).map_err(|cause| RunError::Io {
             path: metrics_path.clone(),
-            source,
+            cause,
         })?;
         Ok(RunReport {
             metrics,
