@@ -1,6 +1,6 @@
 //! The `misslam bench` subcommands: their arguments and the tables they print.
 
-use crate::write_json;
+use crate::{count, count_usize, write_json};
 use anyhow::Context;
 use clap::Subcommand;
 use std::path::PathBuf;
@@ -29,7 +29,7 @@ pub(crate) enum BenchCommand {
         #[arg(long)]
         gpu: bool,
         /// Runs.
-        #[arg(long, default_value_t = 5)]
+        #[arg(long, default_value_t = 5, value_parser = count_usize)]
         repeat: usize,
         /// Write the left disparity here (PFM, NaN invalid).
         #[arg(long)]
@@ -58,7 +58,7 @@ pub(crate) enum BenchCommand {
         #[arg(long, default_value_t = 8)]
         paths: u32,
         /// Timed runs (medians are reported).
-        #[arg(long, default_value_t = 20)]
+        #[arg(long, default_value_t = 20, value_parser = count_usize)]
         repeat: usize,
         /// Write the figures as JSON here.
         #[arg(long)]
@@ -100,7 +100,7 @@ pub(crate) enum BenchCommand {
         #[arg(long)]
         block: bool,
         /// Timed runs (medians are reported).
-        #[arg(long, default_value_t = 50)]
+        #[arg(long, default_value_t = 50, value_parser = count_usize)]
         repeat: usize,
         /// Write the figures as JSON here.
         #[arg(long)]
@@ -109,7 +109,7 @@ pub(crate) enum BenchCommand {
     /// Render speed of the phantom (both views and all GT) per scene at 640x480 and 360x288.
     Phantom {
         /// Frames per configuration.
-        #[arg(long, default_value_t = 20)]
+        #[arg(long, default_value_t = 20, value_parser = count)]
         frames: u64,
         /// Also write the rows as JSON here.
         #[arg(long)]
@@ -119,7 +119,7 @@ pub(crate) enum BenchCommand {
     /// per frame, batch and decoupled ED: nodes, nodes solved, ms, mean error against GT (mm).
     EdScaling {
         /// Frames (the map grows from about 1,000 nodes by about 300 per frame at the defaults).
-        #[arg(long, default_value_t = 30)]
+        #[arg(long, default_value_t = 30, value_parser = count_usize)]
         frames: usize,
         /// Camera advance per frame, mm.
         #[arg(long, default_value_t = 110.0)]
@@ -165,7 +165,7 @@ pub(crate) enum BenchCommand {
         #[arg(long, default_value = "orb")]
         detector: String,
         /// Timed repetitions (the median is reported).
-        #[arg(long, default_value_t = 20)]
+        #[arg(long, default_value_t = 20, value_parser = count_usize)]
         repeat: usize,
         /// Write timings, keypoints and matches as JSON here.
         #[arg(long)]
@@ -177,7 +177,7 @@ pub(crate) enum BenchCommand {
         #[arg(long, default_value_t = 32)]
         nodes: usize,
         /// Frames per configuration.
-        #[arg(long, default_value_t = 5000)]
+        #[arg(long, default_value_t = 5000, value_parser = count)]
         frames: u64,
         /// Also write the rows as JSON here.
         #[arg(long)]

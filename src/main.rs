@@ -90,7 +90,7 @@ enum Command {
         #[arg(long, default_value = "out/ablation")]
         out: PathBuf,
         /// Runs at a time (the figures do not depend on it).
-        #[arg(long, default_value_t = 1)]
+        #[arg(long, default_value_t = 1, value_parser = count_usize)]
         jobs: usize,
     },
     /// Check a graph without running it.
@@ -239,7 +239,7 @@ enum PhantomCommand {
         #[arg(long, default_value = "heart")]
         scene: String,
         /// Frames to write.
-        #[arg(long, default_value_t = 30)]
+        #[arg(long, default_value_t = 30, value_parser = count)]
         frames: u64,
         /// Output folder.
         #[arg(long)]
@@ -597,6 +597,20 @@ fn run(command: Command) -> anyhow::Result<()> {
             }
         }
     }
+}
+
+/// A count on the command line (frames, runs, repetitions, jobs): a whole number, at least 1.
+pub(crate) fn count(s: &str) -> Result<u64, String> {
+    match s.parse::<u64>() {
+        Ok(0) => Err("must be at least 1".into()),
+        Ok(v) => Ok(v),
+        Err(_) => Err(format!("`{s}` is not a whole number")),
+    }
+}
+
+/// [`count`] as a `usize`.
+pub(crate) fn count_usize(s: &str) -> Result<usize, String> {
+    count(s).and_then(|v| usize::try_from(v).map_err(|_| format!("`{s}` is too large")))
 }
 
 /// Writes `value` as pretty JSON to `path` (the `--out` of the benchmarks).

@@ -103,6 +103,27 @@ fn plugins_lists_and_describes() {
 }
 
 #[test]
+fn a_count_of_zero_is_refused_naming_the_flag() {
+    for args in [
+        &["bench", "phantom", "--frames", "0"][..],
+        &["bench", "ed-scaling", "--frames", "0"],
+        &["bench", "runtime-overhead", "--frames", "0"],
+        &["ablate", "graphs/phantom.toml", "--jobs", "0"],
+        &["phantom", "export", "--frames", "0", "--out", "out/never"],
+    ] {
+        let out = misslam().args(args).output().unwrap();
+        assert_eq!(out.status.code(), Some(2), "{args:?}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        let flag = args.iter().find(|a| a.starts_with("--")).unwrap();
+        assert!(
+            err.starts_with(&format!("error: invalid value '0' for '{flag} "))
+                && err.contains("must be at least 1"),
+            "{args:?}: {err}"
+        );
+    }
+}
+
+#[test]
 fn bad_rerun_mode_is_a_one_line_error() {
     let out = misslam()
         .args(["run", "graphs/inspect.toml", "--rerun", "view"])
