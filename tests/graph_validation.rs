@@ -208,3 +208,40 @@ fn ed_nodes_refuse_a_wrong_graph_or_solver_value_naming_it() {
         }
     }
 }
+
+#[test]
+fn a_nan_or_an_infinity_where_a_number_is_needed_is_refused_naming_it() {
+    let registry = builtin_registry();
+    for (set, field) in [
+        (
+            "src.distance_mm=inf",
+            "`distance_mm` must be a finite number, got inf",
+        ),
+        (
+            "src.ambient=nan",
+            "`ambient` must be a finite number, got NaN",
+        ),
+        ("src.specular=-1", "`specular` must be >= 0"),
+        (
+            "post.smooth_sigma_mm=inf",
+            "`smooth_sigma_mm` must be a positive number, got inf",
+        ),
+        (
+            "fusion.stable_weight=nan",
+            "must be a finite number >= 0, got NaN",
+        ),
+    ] {
+        let sets = [set.to_string()];
+        let g = graph::load(Path::new("graphs/mis_slam.toml"), &registry, &sets)
+            .expect("a valid graph");
+        let err = misslam::framework::Runtime::build(g)
+            .err()
+            .unwrap_or_else(|| panic!("{set} was accepted"))
+            .to_string();
+        let node = set.split('.').next().unwrap();
+        assert!(
+            err.contains(&format!("node `{node}`")) && err.contains(field),
+            "{set}: {err}"
+        );
+    }
+}

@@ -105,6 +105,12 @@ impl Params {
                 ));
             }
         }
+        if !(self.stable_weight >= 0.0 && self.stable_weight.is_finite()) {
+            return Err(BuildError::param(
+                "stable_weight",
+                format!("must be a finite number >= 0, got {}", self.stable_weight),
+            ));
+        }
         if self.max_surfels == 0 {
             return Err(BuildError::param("max_surfels", "must be at least 1"));
         }

@@ -274,6 +274,73 @@ impl Phantom {
             "must be positive",
         )?;
         check(p.fps > 0.0 && p.fps.is_finite(), "fps", "must be positive")?;
+        // Every other number finite: a NaN or an infinity renders blank or garbled frames, which
+        // the stages downstream would only report as missing depth.
+        let tool = [p.tool_press_mm, p.tool_start_s];
+        for (field, values) in [
+            ("mesh_rotation_deg", &p.mesh_rotation_deg[..]),
+            ("distance_mm", &[p.distance_mm][..]),
+            ("extent_mm", &p.extent_mm[..]),
+            ("sweep_mm", &[p.sweep_mm][..]),
+            ("sweep_period_s", &[p.sweep_period_s][..]),
+            ("fast_start_s", &[p.fast_start_s][..]),
+            ("fast_duration_s", &[p.fast_duration_s][..]),
+            ("fast_amplitude_mm", &[p.fast_amplitude_mm][..]),
+            ("heartbeat_mm", &[p.heartbeat_mm.unwrap_or(0.0)][..]),
+            ("heartbeat_hz", &[p.heartbeat_hz][..]),
+            ("breathing_mm", &[p.breathing_mm.unwrap_or(0.0)][..]),
+            ("breathing_hz", &[p.breathing_hz][..]),
+            ("tool_press_mm / tool_start_s", &tool[..]),
+            ("tool_xy_mm", &p.tool_xy_mm[..]),
+            ("tool_duration_s", &[p.tool_duration_s][..]),
+            ("vessel_scale_mm", &[p.vessel_scale_mm][..]),
+            ("ambient", &[p.ambient][..]),
+            ("specular", &[p.specular][..]),
+            ("shininess", &[p.shininess][..]),
+            ("vignetting", &[p.vignetting][..]),
+            ("exposure_s", &[p.exposure_s][..]),
+        ] {
+            if let Some(v) = values.iter().find(|v| !v.is_finite()) {
+                return Err(format!("`{field}` must be a finite number, got {v}"));
+            }
+        }
+        if let Some(f) = p.trajectory_fps {
+            check(
+                f > 0.0 && f.is_finite(),
+                "trajectory_fps",
+                "must be positive",
+            )?;
+        }
+        for (field, v) in [
+            ("sweep_mm", p.sweep_mm),
+            ("sweep_period_s", p.sweep_period_s),
+            ("fast_duration_s", p.fast_duration_s),
+            ("heartbeat_hz", p.heartbeat_hz),
+            ("breathing_hz", p.breathing_hz),
+            ("tool_duration_s", p.tool_duration_s),
+            ("specular", p.specular),
+            ("exposure_s", p.exposure_s),
+        ] {
+            check(v >= 0.0, field, &format!("must be >= 0, got {v}"))?;
+        }
+        check(
+            p.vessel_scale_mm > 0.0,
+            "vessel_scale_mm",
+            "must be positive",
+        )?;
+        check(p.shininess > 0.0, "shininess", "must be positive")?;
+        for (field, v) in [("ambient", p.ambient), ("vignetting", p.vignetting)] {
+            check(
+                (0.0..=1.0).contains(&v),
+                field,
+                &format!("must be in 0..1, got {v}"),
+            )?;
+        }
+        check(
+            p.motion_blur_samples >= 1,
+            "motion_blur_samples",
+            "must be at least 1",
+        )?;
         check(
             p.distance_mm > 30.0,
             "distance_mm",
@@ -299,7 +366,11 @@ impl Phantom {
             "noise_sigma",
             "must be >= 0",
         )?;
-        check(p.tool_radius_mm > 0.0, "tool_radius_mm", "must be positive")?;
+        check(
+            p.tool_radius_mm > 0.0 && p.tool_radius_mm.is_finite(),
+            "tool_radius_mm",
+            "must be positive",
+        )?;
         check(
             (1..=64).contains(&p.render_threads),
             "render_threads",

@@ -272,6 +272,125 @@ fn sequence_ends_and_bad_parameters_name_the_field() {
     .err()
     .unwrap();
     assert!(e.starts_with("`distance_mm` must exceed 30 mm"), "{e}");
+    // A NaN or an infinity anywhere, or a value out of its range, names its field.
+    let d = Params::default;
+    for (p, want) in [
+        (
+            Params {
+                distance_mm: f32::INFINITY,
+                ..d()
+            },
+            "`distance_mm` must be a finite number, got inf",
+        ),
+        (
+            Params {
+                sweep_mm: f32::NAN,
+                ..d()
+            },
+            "`sweep_mm` must be a finite number, got NaN",
+        ),
+        (
+            Params {
+                heartbeat_mm: Some(f32::NAN),
+                ..d()
+            },
+            "`heartbeat_mm` must be a finite",
+        ),
+        (
+            Params {
+                breathing_mm: Some(f32::INFINITY),
+                ..d()
+            },
+            "`breathing_mm` must be a finite",
+        ),
+        (
+            Params {
+                mesh_rotation_deg: [0.0, f32::NAN, 0.0],
+                ..d()
+            },
+            "`mesh_rotation_deg` must be a finite",
+        ),
+        (
+            Params {
+                tool_xy_mm: [f32::NAN, 0.0],
+                ..d()
+            },
+            "`tool_xy_mm` must be a finite",
+        ),
+        (
+            Params {
+                specular: f32::NAN,
+                ..d()
+            },
+            "`specular` must be a finite",
+        ),
+        (
+            Params {
+                exposure_s: f32::NAN,
+                ..d()
+            },
+            "`exposure_s` must be a finite",
+        ),
+        (
+            Params {
+                ambient: 2.0,
+                ..d()
+            },
+            "`ambient` must be in 0..1, got 2",
+        ),
+        (
+            Params {
+                vignetting: -0.5,
+                ..d()
+            },
+            "`vignetting` must be in 0..1",
+        ),
+        (
+            Params {
+                sweep_period_s: -1.0,
+                ..d()
+            },
+            "`sweep_period_s` must be >= 0",
+        ),
+        (
+            Params {
+                shininess: 0.0,
+                ..d()
+            },
+            "`shininess` must be positive",
+        ),
+        (
+            Params {
+                vessel_scale_mm: 0.0,
+                ..d()
+            },
+            "`vessel_scale_mm` must be positive",
+        ),
+        (
+            Params {
+                tool_radius_mm: f32::INFINITY,
+                ..d()
+            },
+            "`tool_radius_mm` must be positive",
+        ),
+        (
+            Params {
+                motion_blur_samples: 0,
+                ..d()
+            },
+            "`motion_blur_samples` must be at least 1",
+        ),
+        (
+            Params {
+                trajectory_fps: Some(0.0),
+                ..d()
+            },
+            "`trajectory_fps` must be positive",
+        ),
+    ] {
+        let e = Phantom::new(p, 0).err().unwrap_or_default();
+        assert!(e.starts_with(want), "{want}: {e}");
+    }
 }
 
 #[test]

@@ -103,13 +103,14 @@ impl Params {
                 self.specular_dilate_px, self.smooth_radius
             ));
         }
-        for (name, v) in [
-            ("smooth_sigma_px", self.smooth_sigma_px),
-            ("smooth_sigma_mm", self.smooth_sigma_mm),
-            ("max_normal_step_mm", self.max_normal_step_mm),
+        for (name, v, finite) in [
+            ("smooth_sigma_px", self.smooth_sigma_px, true),
+            ("smooth_sigma_mm", self.smooth_sigma_mm, true),
+            // Infinite: no step is too large.
+            ("max_normal_step_mm", self.max_normal_step_mm, false),
         ] {
-            if v.is_nan() || v <= 0.0 {
-                return Err(format!("`{name}` must be positive, got {v}"));
+            if v.is_nan() || v <= 0.0 || (finite && v.is_infinite()) {
+                return Err(format!("`{name}` must be a positive number, got {v}"));
             }
         }
         Ok(())
