@@ -276,7 +276,6 @@ impl Phantom {
         check(p.fps > 0.0 && p.fps.is_finite(), "fps", "must be positive")?;
         // Every other number finite: a NaN or an infinity renders blank or garbled frames, which
         // the stages downstream would only report as missing depth.
-        let tool = [p.tool_press_mm, p.tool_start_s];
         for (field, values) in [
             ("mesh_rotation_deg", &p.mesh_rotation_deg[..]),
             ("distance_mm", &[p.distance_mm][..]),
@@ -290,7 +289,8 @@ impl Phantom {
             ("heartbeat_hz", &[p.heartbeat_hz][..]),
             ("breathing_mm", &[p.breathing_mm.unwrap_or(0.0)][..]),
             ("breathing_hz", &[p.breathing_hz][..]),
-            ("tool_press_mm / tool_start_s", &tool[..]),
+            ("tool_press_mm", &[p.tool_press_mm][..]),
+            ("tool_start_s", &[p.tool_start_s][..]),
             ("tool_xy_mm", &p.tool_xy_mm[..]),
             ("tool_duration_s", &[p.tool_duration_s][..]),
             ("vessel_scale_mm", &[p.vessel_scale_mm][..]),
