@@ -145,17 +145,20 @@ fn an_unwritable_output_folder_and_an_absent_viewer_are_one_line_errors() {
     let file = dir.join("a-file");
     std::fs::write(&file, b"").unwrap();
     let out_dir = file.join("out");
-    let out = misslam()
-        .args([
+    // One frame of the phantom into `out`.
+    let run = |out: &std::path::Path| {
+        let mut c = misslam();
+        c.args([
             "run",
             "graphs/phantom.toml",
             "--set",
             "graph.frames.count=1",
-            "--out",
         ])
-        .arg(&out_dir)
-        .output()
-        .unwrap();
+        .arg("--out")
+        .arg(out);
+        c
+    };
+    let out = run(&out_dir).output().unwrap();
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     let line = err
@@ -168,15 +171,7 @@ fn an_unwritable_output_folder_and_an_absent_viewer_are_one_line_errors() {
     let free = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let port = free.local_addr().unwrap().port();
     drop(free);
-    let out = misslam()
-        .args([
-            "run",
-            "graphs/phantom.toml",
-            "--set",
-            "graph.frames.count=1",
-            "--out",
-        ])
-        .arg(dir.join("run"))
+    let out = run(&dir.join("run"))
         .args(["--rerun", &format!("connect:127.0.0.1:{port}")])
         .output()
         .unwrap();
