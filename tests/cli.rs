@@ -103,6 +103,29 @@ fn plugins_lists_and_describes() {
 }
 
 #[test]
+fn a_run_that_processes_no_frame_says_why() {
+    let dir = std::env::temp_dir().join(format!("misslam-cli-none-{}", std::process::id()));
+    let out = misslam()
+        .args([
+            "run",
+            "graphs/phantom.toml",
+            "--set",
+            "graph.frames.start=100000",
+            "--out",
+        ])
+        .arg(&dir)
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("no frame was processed: the source gave none from frame 100000 on"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
 fn a_count_of_zero_is_refused_naming_the_flag() {
     for args in [
         &["bench", "phantom", "--frames", "0"][..],

@@ -327,6 +327,19 @@ impl Runtime {
             }
         }
 
+        if error.is_none() && counts.processed == 0 {
+            let start = self.graph.frames.start;
+            if counts.skipped > 0 {
+                tracing::warn!(
+                    "no frame was processed: {} skipped (see the warnings above)",
+                    counts.skipped
+                );
+            } else {
+                tracing::warn!(
+                    "no frame was processed: the source gave none from frame {start} on (`graph.frames.start`; is it past the sequence's end?)"
+                );
+            }
+        }
         let mut metrics = RunMetrics {
             graph: self.graph.name.clone(),
             graph_file: self.graph.file.display().to_string(),
