@@ -132,7 +132,7 @@ enum Command {
         #[arg(long, default_value = "heart,stomach,liver,lung")]
         organs: String,
         /// Monte Carlo runs per organ (seeds `seed` .. `seed + runs - 1`).
-        #[arg(long, default_value_t = 20)]
+        #[arg(long, default_value_t = 20, value_parser = count_usize)]
         runs: usize,
         /// Steps per run.
         #[arg(long, default_value_t = 72)]

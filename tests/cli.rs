@@ -133,6 +133,7 @@ fn a_count_of_zero_is_refused_naming_the_flag() {
         &["bench", "runtime-overhead", "--frames", "0"],
         &["ablate", "graphs/phantom.toml", "--jobs", "0"],
         &["phantom", "export", "--frames", "0", "--out", "out/never"],
+        &["observability", "--runs", "0"],
     ] {
         let out = misslam().args(args).output().unwrap();
         assert_eq!(out.status.code(), Some(2), "{args:?}");
