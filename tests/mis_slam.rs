@@ -194,6 +194,56 @@ fn fusion_says_when_the_depth_stops_meeting_the_model() {
 }
 
 #[test]
+fn a_wide_view_of_noisy_depth_keeps_the_model_together() {
+    // f = 175 px at 320x240: twice the field of view of the graph's camera and half its
+    // disparities, so about 1 mm of depth noise. With E_rot at the library's weight (1) the
+    // nodes flatten their noisy surfels onto planes and the model comes apart (31 mm RMS after
+    // 20 frames), which the node reports; with the node's default (10) it holds.
+    let wide = ["graph.frames.count=20", "src.focal_px=175"];
+    let e = run(&wide, "mis_slam_wide");
+    let (mean, rms) = (e["recon.mean_mm"], e["recon.rms_mm"]);
+    eprintln!(
+        "wide view: recon {mean:.3} mm, RMS {rms:.3}, {} collapsed frames",
+        e["fusion.collapsed_frames"]
+    );
+    assert!(mean < 1.2 && rms < 1.5, "recon {mean} mm, RMS {rms}");
+    assert_eq!(e["fusion.collapsed_frames"], 0.0);
+    let e = run(
+        &[&wide[..], &["fusion.solver.weights.rot=1"]].concat(),
+        "mis_slam_wide_rot1",
+    );
+    let n = e["fusion.collapsed_frames"];
+    eprintln!(
+        "wide view, w_rot 1: recon RMS {:.1} mm, {n} collapsed frames",
+        e["recon.rms_mm"]
+    );
+    assert!(n >= 1.0, "{n}");
+}
+
+#[test]
+fn a_sample_per_pixel_is_weighed_as_the_default_stride_is() {
+    // `stride = 1` hands the solve about 16 times the surfels per node of the default 4; E_data
+    // scaled by its term count (`data_points_per_node`) keeps its balance with E_rot and E_reg.
+    // Without the scaling nodes collapse and the RMS error doubles (0.47 against 0.25 mm).
+    let dense = ["graph.frames.count=20", "fusion.stride=1"];
+    let e = run(&dense, "mis_slam_stride1");
+    let (mean, rms) = (e["recon.mean_mm"], e["recon.rms_mm"]);
+    eprintln!("stride 1: recon {mean:.3} mm, RMS {rms:.3}");
+    assert!(mean < 0.25 && rms < 0.35, "recon {mean} mm, RMS {rms}");
+    assert_eq!(e["fusion.collapsed_frames"], 0.0);
+    let e = run(
+        &[&dense[..], &["fusion.data_points_per_node=0"]].concat(),
+        "mis_slam_stride1_unscaled",
+    );
+    let n = e["fusion.collapsed_frames"];
+    eprintln!(
+        "stride 1 unscaled: recon RMS {:.3} mm, {n} collapsed frames",
+        e["recon.rms_mm"]
+    );
+    assert!(n >= 1.0, "{n}");
+}
+
+#[test]
 fn mis_slam_runs_over_the_real_hamlyn_frames_without_failing() {
     // Real in-vivo frames 3 s apart: tracking is mostly lost (reported, never fused), and nothing
     // may crash, skip or produce a non-finite model.

@@ -165,6 +165,12 @@ pub struct SurfelNode {
     disagreed: u64,
     /// Whether the previous frame disagreed (one warning per run of such frames).
     disagreeing: bool,
+    /// Frames after whose solve some node's affine had collapsed or blown up (see
+    /// [`collapsed_nodes`]), and whether the previous frame's had (one warning per run).
+    collapsed: u64,
+    collapsing: bool,
+    /// Per node: whether a visible surfel binds it (reused by [`data_points_per_node`]).
+    bound: Vec<bool>,
     /// The previous frame's keypoints anchored to the model (E_corr).
     corr: corr::CorrTracker,
     /// Solves run, the correspondences they used, and their numeric factorisations made and
@@ -180,6 +186,60 @@ pub struct SurfelNode {
 /// pose (or the warp) no longer puts the model where the depth is, and the model fills with
 /// duplicates; it is warned about and counted (`fusion.disagreeing_frames` in `metrics.json`).
 pub const DISAGREE_MIN_SAMPLES: usize = 100;
+
+/// A node's affine A whose determinant leaves [1 / `COLLAPSE_DET`, `COLLAPSE_DET`] has collapsed
+/// (a column flattened: the node projects its surfels onto a plane, and the canonical points of
+/// new surfels, mapped back through A^-1, land far off) or blown up; soft tissue does not change
+/// its volume fourfold from one frame to the next.
+pub const COLLAPSE_DET: f64 = 4.0;
+
+/// Nodes of `graph` whose affine has collapsed or blown up (det A outside [1/4, 4], or not
+/// finite).
+pub fn collapsed_nodes(graph: &EdGraph) -> usize {
+    graph
+        .warp
+        .iter()
+        .filter(|w| {
+            let d = misslam_deformation_ed::graph::affine(w).determinant();
+            !(1.0 / COLLAPSE_DET..=COLLAPSE_DET).contains(&d)
+        })
+        .count()
+}
+
+/// The visible surfels per node they bind (with a non-zero weight): E_data's term count per
+/// node. `bound` is a reused buffer.
+pub fn data_points_per_node(
+    visible: &[u32],
+    bindings: &[Binding],
+    nodes: usize,
+    bound: &mut Vec<bool>,
+) -> f64 {
+    bound.clear();
+    bound.resize(nodes, false);
+    let mut n = 0usize;
+    for &i in visible {
+        for (j, w) in bindings[i as usize].iter() {
+            if w > 0.0 && !std::mem::replace(&mut bound[j as usize], true) {
+                n += 1;
+            }
+        }
+    }
+    if n == 0 {
+        0.0
+    } else {
+        visible.len() as f64 / n as f64
+    }
+}
+
+/// The factor on `weights.data` for a solve whose data terms average `per_node` per node, with
+/// `Params::data_points_per_node` = `reference` (0: off): `reference / per_node` above it, else 1.
+pub fn data_weight_scale(per_node: f64, reference: f64) -> f64 {
+    if reference > 0.0 && per_node > reference {
+        reference / per_node
+    } else {
+        1.0
+    }
+}
 
 impl SurfelNode {
     #[allow(clippy::too_many_arguments)]
@@ -316,6 +376,14 @@ impl SurfelNode {
             let corrs = corrs.map_err(NodeError::msg)?;
             self.subset
                 .gather(&visible, &m.canon, &m.normals, &m.bindings);
+            // E_data normalised by its term count per node.
+            let per_node =
+                data_points_per_node(&visible, &m.bindings, graph.len(), &mut self.bound);
+            let mut solver = self.p.solver.clone();
+            solver.weights.data *= data_weight_scale(per_node, self.p.data_points_per_node);
+            metrics
+                .values
+                .insert("fusion.data_points_per_node".into(), per_node);
             metrics
                 .values
                 .insert("fusion.correspondences".into(), corrs.len() as f64);
@@ -344,11 +412,30 @@ impl SurfelNode {
                     graph,
                     &mut pose,
                     &problem,
-                    &self.p.solver,
+                    &solver,
                     &self.p.decoupled,
                 )
                 .map_err(NodeError::msg)?;
             st.lap("solve");
+            let collapsed = collapsed_nodes(graph);
+            metrics
+                .values
+                .insert("fusion.collapsed_nodes".into(), collapsed as f64);
+            if collapsed > 0 {
+                self.collapsed += 1;
+                if !self.collapsing {
+                    tracing::warn!(
+                        frame = frame.index,
+                        "{collapsed} of {} graph nodes have collapsed or blown up after the solve \
+                         (det A outside [1/{COLLAPSE_DET}, {COLLAPSE_DET}]): E_data outweighs E_rot \
+                         (noisy depth, dense samples) and the model comes apart there; raise \
+                         fusion's solver.weights.rot or lower data_points_per_node. Counted in \
+                         fusion.collapsed_frames",
+                        graph.len()
+                    );
+                }
+            }
+            self.collapsing = collapsed > 0;
             st.times.extend([
                 ("solve.associate", info.ms_associate),
                 ("solve.assemble", info.ms_assemble),
@@ -664,6 +751,7 @@ impl Node for SurfelNode {
             self.graph.as_ref().map_or(0, |g| g.len()) as f64,
         );
         ctx.report_eval("fusion.disagreeing_frames", self.disagreed as f64);
+        ctx.report_eval("fusion.collapsed_frames", self.collapsed as f64);
         ctx.report_eval(
             "fusion.correspondences_per_solve",
             self.corr_used as f64 / self.solves.max(1) as f64,
@@ -739,6 +827,9 @@ pub fn build(p: Params, _: &BuildContext) -> Result<SurfelNode, BuildError> {
         scan_normals: Vec::new(),
         disagreed: 0,
         disagreeing: false,
+        collapsed: 0,
+        collapsing: false,
+        bound: Vec::new(),
         corr: corr::CorrTracker::default(),
         solves: 0,
         corr_used: 0,
@@ -787,7 +878,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
             PortSpec::new(
                 "info",
                 PortType::Metrics,
-                "fusion.surfels, nodes, fused, added, removed, visible, solve_ms, iterations, factorisations, reused_factorisations, rejected_steps, correspondences, anchors",
+                "fusion.surfels, nodes, fused, added, removed, visible, solve_ms, iterations, factorisations, reused_factorisations, rejected_steps, correspondences, anchors, data_points_per_node (E_data's term count per node), collapsed_nodes (nodes whose affine collapsed)",
             ),
         ],
         build,
@@ -813,5 +904,71 @@ mod tests {
         let (a_inv, a_t) = local_inverses(&b, &nm);
         assert!((a_inv * a - Matrix3::identity()).norm() < 1e-12);
         assert!((a_t - a.transpose()).norm() < 1e-12);
+    }
+
+    #[test]
+    fn collapsed_nodes_are_those_whose_affine_left_a_fourfold_volume_change() {
+        let nodes = (0..6)
+            .map(|i| Vector3::new(10.0 * i as f64, 0.0, 0.0))
+            .collect();
+        let mut g = EdGraph::from_nodes(nodes, Default::default()).unwrap();
+        assert_eq!(collapsed_nodes(&g), 0);
+        // A column flattened (det 0.14, as a node that projects its surfels onto a plane), a
+        // blow-up (det 4.1), a flip (det -1), NaN, and two within the bounds (det 0.26 and 3.9).
+        let set = |g: &mut EdGraph, j: usize, a: [f64; 9]| {
+            let w = &mut g.warp[j];
+            for r in 0..3 {
+                w[4 * r..4 * r + 3].copy_from_slice(&a[3 * r..3 * r + 3]);
+            }
+        };
+        set(&mut g, 0, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, -0.37, 0.2, 0.14]);
+        set(&mut g, 1, [4.1, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
+        set(&mut g, 2, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0]);
+        set(
+            &mut g,
+            3,
+            [f64::NAN, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        );
+        assert_eq!(collapsed_nodes(&g), 4);
+        set(&mut g, 4, [0.26, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
+        set(&mut g, 5, [3.9, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
+        assert_eq!(collapsed_nodes(&g), 4);
+    }
+
+    #[test]
+    fn data_terms_per_node_count_the_nodes_the_visible_points_bind() {
+        let bind = |pairs: &[(u32, f64)]| {
+            let mut b = Binding::EMPTY;
+            for (i, &(j, w)) in pairs.iter().enumerate() {
+                b.nodes[i] = j;
+                b.weights[i] = w;
+            }
+            b.len = pairs.len() as u8;
+            b
+        };
+        let bindings = [
+            bind(&[(0, 0.5), (1, 0.5)]),
+            bind(&[(1, 0.7), (2, 0.3)]),
+            // A zero weight binds nothing.
+            bind(&[(2, 1.0), (3, 0.0)]),
+            bind(&[(4, 1.0)]),
+        ];
+        let mut buf = vec![true; 2];
+        // Points 0, 1 and 2 bind nodes 0, 1 and 2: one point per node.
+        assert_eq!(
+            data_points_per_node(&[0, 1, 2], &bindings, 5, &mut buf),
+            1.0
+        );
+        // Points 0 and 1 bind nodes 0, 1 and 2 (the buffer is reset between calls).
+        assert_eq!(
+            data_points_per_node(&[0, 1], &bindings, 5, &mut buf),
+            2.0 / 3.0
+        );
+        assert_eq!(data_points_per_node(&[3], &bindings, 5, &mut buf), 1.0);
+        assert_eq!(data_points_per_node(&[], &bindings, 5, &mut buf), 0.0);
+        // The weight is scaled down only above the reference, and not at all with 0.
+        assert_eq!(data_weight_scale(880.0, 32.0), 32.0 / 880.0);
+        assert_eq!(data_weight_scale(20.0, 32.0), 1.0);
+        assert_eq!(data_weight_scale(880.0, 0.0), 1.0);
     }
 }

@@ -4,7 +4,7 @@ use crate::corr::CorrParams;
 use misslam_deformation_ed::decoupled::DecoupledParams;
 use misslam_deformation_ed::engine::SolverKind;
 use misslam_deformation_ed::graph::GraphParams;
-use misslam_deformation_ed::problem::SolverParams;
+use misslam_deformation_ed::problem::{SolverParams, Weights};
 use misslam_framework::registry::BuildError;
 
 /// Parameters of `fusion.surfel`.
@@ -13,8 +13,24 @@ use misslam_framework::registry::BuildError;
 pub struct Params {
     /// Deformation graph: spacing (mm), neighbours, sampling.
     pub graph: GraphParams,
-    /// Energy weights and solver options.
+    /// Energy weights and solver options. `weights.rot` is 10 here (the library's 1 suits a
+    /// clean template): the model is built from noisy depth, and the column of a node's A that
+    /// acts along the surface normal is bound by no edge and hardly by the data, only by E_rot,
+    /// whose cost for collapsing a column is at most w_rot. With w_rot = 1 a node flattens its
+    /// noisy surfels onto a plane once that pays, new surfels mapped back through A^-1 land far
+    /// off, and the model falls apart (reported: `fusion.collapsed_frames`). The main graph over
+    /// 40 frames at 640x480 with f = 350 px (46 surfels per node, 0.5 mm of depth noise) ended
+    /// 46.5 mm off with w_rot = 1 and E_data unscaled, 0.371 mm with the defaults; at 320x240
+    /// with f = 175 px 11.1 against 0.839; the graph's own view 0.147 and 0.148 mm.
     pub solver: SolverParams,
+    /// E_data normalised by its term count (method.md: the weights depend on the number of
+    /// terms): where the visible surfels handed to a solve average more than this many per node
+    /// they bind, `solver.weights.data` is scaled by this number over their average, so that
+    /// its balance with E_rot and E_reg does not change with the resolution, the field of view
+    /// or `stride`. 0 turns it off. The main graph at 320x240 (`stride` 4) averages about 47;
+    /// with `stride` 1 about 660, and unscaled its nodes collapsed (RMS error 0.47 mm after 20
+    /// frames against 0.25 scaled); 640x480 at f = 700 px averages about 140.
+    pub data_points_per_node: f64,
     /// Batch or decoupled.
     pub solver_kind: SolverKind,
     /// The decoupled split (with `solver_kind = "decoupled"`).
@@ -55,8 +71,13 @@ impl Default for Params {
             // to 1.3x faster (see `SolverParams::reuse_factorisation` and `docs/pipeline.md`, "Speed").
             solver: SolverParams {
                 reuse_factorisation: 1,
+                weights: Weights {
+                    rot: 10.0,
+                    ..Weights::default()
+                },
                 ..SolverParams::default()
             },
+            data_points_per_node: 32.0,
             solver_kind: SolverKind::Decoupled,
             decoupled: DecoupledParams::default(),
             stride: 4,
@@ -109,6 +130,15 @@ impl Params {
             return Err(BuildError::param(
                 "stable_weight",
                 format!("must be a finite number >= 0, got {}", self.stable_weight),
+            ));
+        }
+        if !(self.data_points_per_node >= 0.0 && self.data_points_per_node.is_finite()) {
+            return Err(BuildError::param(
+                "data_points_per_node",
+                format!(
+                    "must be a finite number >= 0 (0: off), got {}",
+                    self.data_points_per_node
+                ),
             ));
         }
         if self.max_surfels == 0 {
