@@ -18,18 +18,20 @@ pub struct Params {
     /// acts along the surface normal is bound by no edge and hardly by the data, only by E_rot,
     /// whose cost for collapsing a column is at most w_rot. With w_rot = 1 a node flattens its
     /// noisy surfels onto a plane once that pays, new surfels mapped back through A^-1 land far
-    /// off, and the model falls apart (reported: `fusion.collapsed_frames`). The main graph over
-    /// 40 frames at 640x480 with f = 350 px (46 surfels per node, 0.5 mm of depth noise) ended
-    /// 46.5 mm off with w_rot = 1 and E_data unscaled, 0.371 mm with the defaults; at 320x240
-    /// with f = 175 px 11.1 against 0.839; the graph's own view 0.147 and 0.148 mm.
+    /// off, and the model falls apart (a node whose det A leaves [1/4, 4] is now reset to its
+    /// nearest rotation and reported: `fusion.collapsed_frames`). The main graph over 40 frames
+    /// at 640x480 with f = 350 px (46 surfels per node, 0.5 mm of depth noise) ended 46.5 mm off
+    /// with w_rot = 1, E_data unscaled and no reset, 0.371 mm with the defaults; at 320x240 with
+    /// f = 175 px 11.1 against 0.839; the graph's own view 0.147 and 0.148 mm.
     pub solver: SolverParams,
     /// E_data normalised by its term count (method.md: the weights depend on the number of
     /// terms): where the visible surfels handed to a solve average more than this many per node
     /// they bind, `solver.weights.data` is scaled by this number over their average, so that
     /// its balance with E_rot and E_reg does not change with the resolution, the field of view
     /// or `stride`. 0 turns it off. The main graph at 320x240 (`stride` 4) averages about 47;
-    /// with `stride` 1 about 660, and unscaled its nodes collapsed (RMS error 0.47 mm after 20
-    /// frames against 0.25 scaled); 640x480 at f = 700 px averages about 140.
+    /// with `stride` 1 about 660, and unscaled its nodes collapsed (reset, above) and the surface
+    /// slid: material drift 0.85 mm after 40 frames against 0.32; 640x480 at f = 700 px averages
+    /// about 140 (0.084 mm against 0.081 unscaled).
     pub data_points_per_node: f64,
     /// Batch or decoupled.
     pub solver_kind: SolverKind,
