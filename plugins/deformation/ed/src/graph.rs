@@ -536,6 +536,44 @@ impl EdGraph {
         self.rebuild();
         added
     }
+
+    /// Resets every node whose affine A has collapsed or blown up, det A outside
+    /// [1 / `max_det`, `max_det`] or not finite, to the rotation nearest it (the polar factor of
+    /// A; the identity where A is not finite), its translation kept (zero where not finite);
+    /// returns how many. A collapsed column maps a node's points onto a plane, and points mapped
+    /// back through A^-1 land far off.
+    pub fn reset_collapsed(&mut self, max_det: f64) -> usize {
+        let mut n = 0;
+        for w in self.warp.iter_mut() {
+            let a = affine(w);
+            if (1.0 / max_det..=max_det).contains(&a.determinant()) {
+                continue;
+            }
+            n += 1;
+            let r = if a.iter().all(|c| c.is_finite()) {
+                let svd = a.svd(true, true);
+                match (svd.u, svd.v_t) {
+                    (Some(u), Some(v_t)) => {
+                        let mut d = Matrix3::identity();
+                        d[(2, 2)] = (u * v_t).determinant().signum();
+                        u * d * v_t
+                    }
+                    _ => Matrix3::identity(),
+                }
+            } else {
+                Matrix3::identity()
+            };
+            for row in 0..3 {
+                for col in 0..3 {
+                    w[4 * row + col] = r[(row, col)];
+                }
+                if !w[4 * row + 3].is_finite() {
+                    w[4 * row + 3] = 0.0;
+                }
+            }
+        }
+        n
+    }
 }
 
 /// A rigid transform as a node warp about `g`: A = R, t = R g + t - g, so the node maps v to
@@ -770,6 +808,57 @@ mod tests {
             assert!((op[i] - (r * pts[i] + t)).norm() < 1e-9);
             assert!((on[i] - r * n[i]).norm() < 1e-9);
         }
+    }
+
+    #[test]
+    fn collapsed_nodes_are_reset_to_their_nearest_rotation() {
+        let nodes = (0..6)
+            .map(|i| Vector3::new(10.0 * i as f64, 0.0, 0.0))
+            .collect();
+        let mut g = EdGraph::from_nodes(nodes, GraphParams::default()).unwrap();
+        assert_eq!(g.reset_collapsed(4.0), 0);
+        // A column flattened (det 0.14, as a node that projects its points onto a plane), a
+        // blow-up (det 4.1), a flip (det -1), NaN, and two within the bounds (det 0.26 and 3.9).
+        let set = |g: &mut EdGraph, j: usize, a: [f64; 9]| {
+            let w = &mut g.warp[j];
+            for r in 0..3 {
+                w[4 * r..4 * r + 3].copy_from_slice(&a[3 * r..3 * r + 3]);
+                w[4 * r + 3] = (j + r) as f64;
+            }
+        };
+        set(&mut g, 0, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, -0.37, 0.2, 0.14]);
+        set(&mut g, 1, [4.1, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
+        set(&mut g, 2, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0]);
+        set(
+            &mut g,
+            3,
+            [f64::NAN, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        );
+        set(&mut g, 4, [0.26, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
+        set(&mut g, 5, [3.9, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
+        let kept = [g.warp[4], g.warp[5]];
+        assert_eq!(g.reset_collapsed(4.0), 4);
+        for j in 0..4 {
+            let a = affine(&g.warp[j]);
+            assert!(
+                (a.transpose() * a - Matrix3::identity()).norm() < 1e-9,
+                "{j}: {a}"
+            );
+            assert!((a.determinant() - 1.0).abs() < 1e-9, "{j}: {a}");
+            let t = translation(&g.warp[j]);
+            assert_eq!(
+                t,
+                Vector3::new(j as f64, j as f64 + 1.0, j as f64 + 2.0),
+                "{j}"
+            );
+        }
+        // A pure stretch and NaN go back to the identity.
+        for j in [1, 3] {
+            let a = affine(&g.warp[j]);
+            assert!((a - Matrix3::identity()).norm() < 1e-9, "{j}: {a}");
+        }
+        assert_eq!([g.warp[4], g.warp[5]], kept);
+        assert_eq!(g.reset_collapsed(4.0), 0);
     }
 
     #[test]

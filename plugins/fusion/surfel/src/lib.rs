@@ -32,7 +32,7 @@ use misslam_deformation_ed::observe::{
 };
 use misslam_deformation_ed::problem::{Intrinsics, ModelSubset, Problem, Scan};
 use misslam_framework::geometry::{arr3, vec3};
-use misslam_framework::nalgebra::{Isometry3, Matrix3, Point3, Vector3};
+use misslam_framework::nalgebra::{Isometry3, Point3, Vector3};
 use misslam_framework::{
     BuildContext, BuildError, DepthMap, Features, Flow, FrameInfo, Image, Inputs, Metrics, Node,
     NodeContext, NodeError, NodeResult, NormalMap, Outputs, PortSpec, PortType, Pose, Registry,
@@ -166,7 +166,8 @@ pub struct SurfelNode {
     /// Whether the previous frame disagreed (one warning per run of such frames).
     disagreeing: bool,
     /// Frames after whose solve some node's affine had collapsed or blown up (see
-    /// [`reset_collapsed_nodes`]), and whether the previous frame's had (one warning per run).
+    /// [`COLLAPSE_DET`]; reset by `EdGraph::reset_collapsed`), and whether the previous frame's
+    /// had (one warning per run).
     collapsed: u64,
     collapsing: bool,
     /// Per node: whether a visible surfel binds it (reused by [`data_points_per_node`]).
@@ -192,42 +193,6 @@ pub const DISAGREE_MIN_SAMPLES: usize = 100;
 /// new surfels, mapped back through A^-1, land far off) or blown up; soft tissue does not change
 /// its volume fourfold from one frame to the next.
 pub const COLLAPSE_DET: f64 = 4.0;
-
-/// Resets every node of `graph` whose affine has collapsed or blown up (det A outside [1/4, 4],
-/// or not finite) to the rotation nearest it (the polar factor of A; the identity where A is not
-/// finite), its translation kept; returns how many.
-pub fn reset_collapsed_nodes(graph: &mut EdGraph) -> usize {
-    let mut n = 0;
-    for w in graph.warp.iter_mut() {
-        let a = misslam_deformation_ed::graph::affine(w);
-        if (1.0 / COLLAPSE_DET..=COLLAPSE_DET).contains(&a.determinant()) {
-            continue;
-        }
-        n += 1;
-        let r = if a.iter().all(|c| c.is_finite()) {
-            let svd = a.svd(true, true);
-            match (svd.u, svd.v_t) {
-                (Some(u), Some(v_t)) => {
-                    let mut d = Matrix3::identity();
-                    d[(2, 2)] = (u * v_t).determinant().signum();
-                    u * d * v_t
-                }
-                _ => Matrix3::identity(),
-            }
-        } else {
-            Matrix3::identity()
-        };
-        for row in 0..3 {
-            for col in 0..3 {
-                w[4 * row + col] = r[(row, col)];
-            }
-            if !w[4 * row + 3].is_finite() {
-                w[4 * row + 3] = 0.0;
-            }
-        }
-    }
-    n
-}
 
 /// The visible surfels per node they bind (with a non-zero weight): E_data's term count per
 /// node. `bound` is a reused buffer.
@@ -440,7 +405,7 @@ impl SurfelNode {
                 )
                 .map_err(NodeError::msg)?;
             st.lap("solve");
-            let collapsed = reset_collapsed_nodes(graph);
+            let collapsed = graph.reset_collapsed(COLLAPSE_DET);
             metrics
                 .values
                 .insert("fusion.collapsed_nodes".into(), collapsed as f64);
@@ -912,6 +877,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use misslam_framework::nalgebra::Matrix3;
 
     #[test]
     fn local_inverses_undo_an_affine_warp() {
@@ -927,57 +893,6 @@ mod tests {
         let (a_inv, a_t) = local_inverses(&b, &nm);
         assert!((a_inv * a - Matrix3::identity()).norm() < 1e-12);
         assert!((a_t - a.transpose()).norm() < 1e-12);
-    }
-
-    #[test]
-    fn collapsed_nodes_are_reset_to_their_nearest_rotation() {
-        let nodes = (0..6)
-            .map(|i| Vector3::new(10.0 * i as f64, 0.0, 0.0))
-            .collect();
-        let mut g = EdGraph::from_nodes(nodes, Default::default()).unwrap();
-        assert_eq!(reset_collapsed_nodes(&mut g), 0);
-        // A column flattened (det 0.14, as a node that projects its surfels onto a plane), a
-        // blow-up (det 4.1), a flip (det -1), NaN, and two within the bounds (det 0.26 and 3.9).
-        let set = |g: &mut EdGraph, j: usize, a: [f64; 9]| {
-            let w = &mut g.warp[j];
-            for r in 0..3 {
-                w[4 * r..4 * r + 3].copy_from_slice(&a[3 * r..3 * r + 3]);
-                w[4 * r + 3] = (j + r) as f64;
-            }
-        };
-        set(&mut g, 0, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, -0.37, 0.2, 0.14]);
-        set(&mut g, 1, [4.1, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
-        set(&mut g, 2, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0]);
-        set(
-            &mut g,
-            3,
-            [f64::NAN, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-        );
-        set(&mut g, 4, [0.26, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
-        set(&mut g, 5, [3.9, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
-        let kept = [g.warp[4], g.warp[5]];
-        assert_eq!(reset_collapsed_nodes(&mut g), 4);
-        for j in 0..4 {
-            let a = misslam_deformation_ed::graph::affine(&g.warp[j]);
-            assert!(
-                (a.transpose() * a - Matrix3::identity()).norm() < 1e-9,
-                "{j}: {a}"
-            );
-            assert!((a.determinant() - 1.0).abs() < 1e-9, "{j}: {a}");
-            let t = misslam_deformation_ed::graph::translation(&g.warp[j]);
-            assert_eq!(
-                t,
-                Vector3::new(j as f64, j as f64 + 1.0, j as f64 + 2.0),
-                "{j}"
-            );
-        }
-        // A pure stretch and NaN go back to the identity; a rotation's collapsed column comes back.
-        for j in [1, 3] {
-            let a = misslam_deformation_ed::graph::affine(&g.warp[j]);
-            assert!((a - Matrix3::identity()).norm() < 1e-9, "{j}: {a}");
-        }
-        assert_eq!([g.warp[4], g.warp[5]], kept);
-        assert_eq!(reset_collapsed_nodes(&mut g), 0);
     }
 
     #[test]
