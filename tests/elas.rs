@@ -204,6 +204,20 @@ fn elas_depth_on_the_noise_free_phantom_is_sub_half_millimetre() {
         "{}",
         e["depth.bad2_valid_pct"]
     );
+    assert_eq!(e["depth.range_saturated_frames"], 0.0);
+    // With 40 disparities the nearer tissue lies beyond the range: flagged on every frame.
+    let sets = ["graph.frames.count=2", "depth.disp_max=40"].map(String::from);
+    let report = common::run_graph_file(
+        "graphs/depth_elas_phantom.toml",
+        &sets,
+        &common::tmp_dir("elas_range"),
+    );
+    let e = &report.metrics.eval;
+    eprintln!(
+        "ELAS, disp_max 40: MAE {:.2} mm, {} frames flagged",
+        e["depth.mae_mm"], e["depth.range_saturated_frames"]
+    );
+    assert_eq!(e["depth.range_saturated_frames"], 2.0);
 }
 
 #[test]

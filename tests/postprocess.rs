@@ -23,6 +23,23 @@ fn postprocessed_sgm_depth_is_sub_half_millimetre_on_the_noise_free_phantom() {
     );
     // Masks and range limits cost almost no valid GT pixels here.
     assert!(e["post.density_pct"] > e["depth.density_pct"] - 1.0);
+    // The 80 disparities reach the phantom's nearest tissue (55 px): no frame is flagged.
+    assert_eq!(e["depth.range_saturated_frames"], 0.0);
+}
+
+#[test]
+fn a_disparity_range_the_scene_outgrows_is_reported() {
+    // The phantom's tissue reaches 55 px of disparity; 40 searched leave every pixel beyond the
+    // range matched at its top (wrong depth), and each frame is flagged.
+    let out = common::tmp_dir("sgm_range");
+    let sets = ["graph.frames.count=2", "depth.max_disparity=40"].map(String::from);
+    let report = common::run_graph_file("graphs/depth_sgm_phantom.toml", &sets, &out);
+    let e = &report.metrics.eval;
+    eprintln!(
+        "SGM, 40 disparities: MAE {:.2} mm, {} frames flagged",
+        e["depth.mae_mm"], e["depth.range_saturated_frames"]
+    );
+    assert_eq!(e["depth.range_saturated_frames"], 2.0);
 }
 
 #[test]

@@ -240,6 +240,55 @@ pub struct DisparityMap {
     pub calib: StereoCalib,
 }
 
+/// Watches a stereo node's disparity maps for a search range the scene has outgrown. A pixel
+/// whose true disparity lies beyond the largest one searched matches best at that largest one,
+/// so such a scene leaves a crowd of valid pixels at the top of the range, each with a wrong
+/// depth (the phantom at 640x480, f = 700 px, with 48 of its 55 disparities searched: 31 % of
+/// the valid pixels, against none with 96). A frame with more than [`Self::MAX_SHARE`] of its
+/// valid pixels there is warned about (once per run of such frames) and counted.
+#[derive(Clone, Debug, Default)]
+pub struct DisparityRangeWatch {
+    /// Frames whose map had more than [`Self::MAX_SHARE`] of its valid pixels at the top.
+    pub frames: u64,
+    warned: bool,
+}
+
+impl DisparityRangeWatch {
+    /// The share of valid pixels at the top of the range above which a frame is flagged.
+    pub const MAX_SHARE: f64 = 0.05;
+
+    /// The share (0 to 1) of `map`'s valid pixels within half a pixel of `top`, the largest
+    /// disparity searched, or above it; flags the frame above [`Self::MAX_SHARE`], telling the
+    /// user to raise the parameter `param` of node `node`.
+    pub fn check(&mut self, frame: u64, map: &FloatMap, top: f32, node: &str, param: &str) -> f64 {
+        let (mut valid, mut high) = (0usize, 0usize);
+        for &d in &map.data {
+            valid += d.is_finite() as usize;
+            high += (d >= top - 0.5 && d.is_finite()) as usize;
+        }
+        let share = if valid == 0 {
+            0.0
+        } else {
+            high as f64 / valid as f64
+        };
+        let flagged = share > Self::MAX_SHARE;
+        if flagged {
+            self.frames += 1;
+            if !self.warned {
+                tracing::warn!(
+                    "frame {frame}: {:.0} % of the matched pixels lie at the largest disparity \
+                     searched ({top} px): the scene comes nearer than the range reaches and their \
+                     depths are wrong; raise `{node}.{param}`. Counted in \
+                     depth.range_saturated_frames",
+                    100.0 * share
+                );
+            }
+        }
+        self.warned = flagged;
+        share
+    }
+}
+
 impl DisparityMap {
     /// The depth of every pixel (`StereoCalib::depth_from_disparity`; NaN where invalid).
     pub fn to_depth(&self) -> DepthMap {
@@ -623,6 +672,37 @@ impl fmt::Display for PortType {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_crowd_at_the_top_of_the_disparity_range_flags_the_frame() {
+        let map = |data: Vec<f32>| FloatMap {
+            width: data.len() as u32,
+            height: 1,
+            data,
+        };
+        let mut w = DisparityRangeWatch::default();
+        // 2 of 10 valid pixels within half a pixel of 47 (NaN not counted): flagged.
+        let mut d = vec![10.0f32; 8];
+        d.extend([46.5, 47.0, f32::NAN, f32::NAN]);
+        assert_eq!(w.check(0, &map(d), 47.0, "depth", "max_disparity"), 0.2);
+        assert_eq!(w.frames, 1);
+        // 46.4 is below the top's half pixel; 1 of 25 (4 %) stays under the 5 % bar.
+        let mut d = vec![10.0f32; 24];
+        d.push(46.4);
+        assert_eq!(
+            w.check(1, &map(d.clone()), 47.0, "depth", "max_disparity"),
+            0.0
+        );
+        d[0] = 47.0;
+        assert_eq!(w.check(2, &map(d), 47.0, "depth", "max_disparity"), 0.04);
+        assert_eq!(w.frames, 1);
+        // No valid pixel: nothing to flag.
+        assert_eq!(
+            w.check(3, &map(vec![f32::NAN; 4]), 47.0, "depth", "max_disparity"),
+            0.0
+        );
+        assert_eq!(w.frames, 1);
+    }
 
     fn calib() -> StereoCalib {
         StereoCalib {

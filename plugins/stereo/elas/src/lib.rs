@@ -25,9 +25,9 @@ pub mod filters;
 pub mod support;
 
 use misslam_framework::{
-    BuildContext, BuildError, DisparityMap, FloatMap, Flow, FrameInfo, Inputs, Metrics, Node,
-    NodeContext, NodeError, NodeResult, Outputs, PointCloud, PortSpec, PortType, Registry,
-    StereoFrame, TypedPlugin,
+    BuildContext, BuildError, DisparityMap, DisparityRangeWatch, FloatMap, Flow, FrameInfo, Inputs,
+    Metrics, Node, NodeContext, NodeError, NodeResult, Outputs, PointCloud, PortSpec, PortType,
+    Registry, StereoFrame, TypedPlugin,
 };
 use support::SupportPoint;
 
@@ -487,6 +487,8 @@ pub struct ElasNode {
     scratch: Scratch,
     gray_l: Vec<u8>,
     gray_r: Vec<u8>,
+    /// Frames whose scene outgrew the disparity range.
+    range: DisparityRangeWatch,
 }
 
 impl ElasNode {
@@ -540,9 +542,14 @@ impl ElasNode {
 }
 
 impl Node for ElasNode {
+    fn finish(&mut self, ctx: &mut NodeContext) -> NodeResult<()> {
+        ctx.report_eval("depth.range_saturated_frames", self.range.frames as f64);
+        Ok(())
+    }
+
     fn process(
         &mut self,
-        _: &mut NodeContext,
+        ctx: &mut NodeContext,
         frame: FrameInfo,
         inputs: &Inputs,
         outputs: &mut Outputs,
@@ -551,12 +558,17 @@ impl Node for ElasNode {
         let (map, out) = self
             .disparity(pair)
             .map_err(|e| NodeError::msg(format!("frame {}: {e}", frame.index)))?;
+        let top = self.params.disp_max as f32;
+        let at_top = self.range.check(frame.index, &map, top, ctx.id, "disp_max");
         let calib = pair.calib;
         if out.support.len() < 3 {
             tracing::warn!(
-                "frame {}: only {} support points (no texture?): no disparity",
+                "frame {}: only {} support points (no texture, or the scene nearer than the \
+                 disparity range reaches, `{}.disp_max` = {}?): no disparity",
                 frame.index,
-                out.support.len()
+                out.support.len(),
+                ctx.id,
+                self.params.disp_max
             );
         }
         let valid = map.data.iter().filter(|d| d.is_finite()).count();
@@ -589,6 +601,9 @@ impl Node for ElasNode {
             .values
             .insert("elas.triangles".into(), out.triangles.len() as f64);
         metrics.values.insert("elas.density_pct".into(), density);
+        metrics
+            .values
+            .insert("elas.range_top_pct".into(), 100.0 * at_top);
         let t = out.timing;
         for (k, v) in [
             ("descriptors", t.descriptors),
@@ -627,6 +642,7 @@ pub fn build(params: Params, ctx: &BuildContext) -> Result<ElasNode, BuildError>
         scratch: Scratch::default(),
         gray_l: Vec::new(),
         gray_r: Vec::new(),
+        range: DisparityRangeWatch::default(),
     })
 }
 

@@ -18,8 +18,9 @@ pub mod synthetic;
 
 use misslam_framework::gpu::GpuContext;
 use misslam_framework::{
-    BuildContext, BuildError, DisparityMap, FloatMap, Flow, FrameInfo, Inputs, Node, NodeContext,
-    NodeError, NodeResult, Outputs, PortSpec, PortType, Registry, StereoFrame, TypedPlugin,
+    BuildContext, BuildError, DisparityMap, DisparityRangeWatch, FloatMap, Flow, FrameInfo, Inputs,
+    Node, NodeContext, NodeError, NodeResult, Outputs, PortSpec, PortType, Registry, StereoFrame,
+    TypedPlugin,
 };
 use std::sync::Arc;
 
@@ -34,6 +35,8 @@ pub struct SgmNode {
     scratch: sgm::Scratch,
     gray_l: Vec<u8>,
     gray_r: Vec<u8>,
+    /// Frames whose scene outgrew the disparity range.
+    range: DisparityRangeWatch,
 }
 
 impl SgmNode {
@@ -72,15 +75,23 @@ impl SgmNode {
 }
 
 impl Node for SgmNode {
+    fn finish(&mut self, ctx: &mut NodeContext) -> NodeResult<()> {
+        ctx.report_eval("depth.range_saturated_frames", self.range.frames as f64);
+        Ok(())
+    }
+
     fn process(
         &mut self,
-        _: &mut NodeContext,
-        _: FrameInfo,
+        ctx: &mut NodeContext,
+        frame: FrameInfo,
         inputs: &Inputs,
         outputs: &mut Outputs,
     ) -> NodeResult<Flow> {
         let pair = inputs.get::<StereoFrame>("stereo")?;
         let map = self.disparity(pair).map_err(NodeError::msg)?;
+        let top = self.params.min_disparity as f32 + self.params.max_disparity as f32 - 1.0;
+        self.range
+            .check(frame.index, &map, top, ctx.id, "max_disparity");
         let disparity = DisparityMap {
             map,
             calib: pair.calib,
@@ -115,6 +126,7 @@ pub fn build(params: Params, ctx: &BuildContext) -> Result<SgmNode, BuildError> 
         scratch: sgm::Scratch::default(),
         gray_l: Vec::new(),
         gray_r: Vec::new(),
+        range: DisparityRangeWatch::default(),
     })
 }
 
