@@ -243,9 +243,10 @@ pub struct DisparityMap {
 /// Watches a stereo node's disparity maps for a search range the scene has outgrown. A pixel
 /// whose true disparity lies beyond the largest one searched matches best at that largest one,
 /// so such a scene leaves a crowd of valid pixels at the top of the range, each with a wrong
-/// depth (the phantom at 640x480, f = 700 px, with 48 of its 55 disparities searched: 31 % of
-/// the valid pixels, against none with 96). A frame with more than [`Self::MAX_SHARE`] of its
-/// valid pixels there is warned about (once per run of such frames) and counted.
+/// depth (the phantom at 640x480, f = 700 px, with 48 of its 55 disparities searched: 29 to
+/// 31 % of the valid pixels, against none with 64 or 96). A frame with more than
+/// [`Self::MAX_SHARE`] of its valid pixels there is warned about (once per run of such frames)
+/// and counted.
 #[derive(Clone, Debug, Default)]
 pub struct DisparityRangeWatch {
     /// Frames whose map had more than [`Self::MAX_SHARE`] of its valid pixels at the top.
