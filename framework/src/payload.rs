@@ -254,14 +254,30 @@ pub struct DisparityRangeWatch {
     warned: bool,
 }
 
+/// What [`DisparityRangeWatch::check`] counted in one map.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RangeCheck {
+    /// The share (0 to 1) of the valid pixels at the top of the range; 0 when none is valid.
+    pub share: f64,
+    /// The valid (finite) pixels of the map, for the node's density figure.
+    pub valid: usize,
+}
+
 impl DisparityRangeWatch {
     /// The share of valid pixels at the top of the range above which a frame is flagged.
     pub const MAX_SHARE: f64 = 0.05;
 
-    /// The share (0 to 1) of `map`'s valid pixels within half a pixel of `top`, the largest
-    /// disparity searched, or above it; flags the frame above [`Self::MAX_SHARE`], telling the
-    /// user to raise the parameter `param` of node `node`.
-    pub fn check(&mut self, frame: u64, map: &FloatMap, top: f32, node: &str, param: &str) -> f64 {
+    /// Counts `map`'s valid pixels and the share of them within half a pixel of `top`, the
+    /// largest disparity searched, or above it; flags the frame above [`Self::MAX_SHARE`],
+    /// telling the user to raise the parameter `param` of node `node`.
+    pub fn check(
+        &mut self,
+        frame: u64,
+        map: &FloatMap,
+        top: f32,
+        node: &str,
+        param: &str,
+    ) -> RangeCheck {
         let (mut valid, mut high) = (0usize, 0usize);
         for &d in &map.data {
             valid += d.is_finite() as usize;
@@ -286,7 +302,7 @@ impl DisparityRangeWatch {
             }
         }
         self.warned = flagged;
-        share
+        RangeCheck { share, valid }
     }
 }
 
@@ -685,23 +701,21 @@ mod tests {
         // 2 of 10 valid pixels within half a pixel of 47 (NaN not counted): flagged.
         let mut d = vec![10.0f32; 8];
         d.extend([46.5, 47.0, f32::NAN, f32::NAN]);
-        assert_eq!(w.check(0, &map(d), 47.0, "depth", "max_disparity"), 0.2);
+        let c = w.check(0, &map(d), 47.0, "depth", "max_disparity");
+        assert_eq!((c.share, c.valid), (0.2, 10));
         assert_eq!(w.frames, 1);
         // 46.4 is below the top's half pixel; 1 of 25 (4 %) stays under the 5 % bar.
         let mut d = vec![10.0f32; 24];
         d.push(46.4);
-        assert_eq!(
-            w.check(1, &map(d.clone()), 47.0, "depth", "max_disparity"),
-            0.0
-        );
+        let c = w.check(1, &map(d.clone()), 47.0, "depth", "max_disparity");
+        assert_eq!((c.share, c.valid), (0.0, 25));
         d[0] = 47.0;
-        assert_eq!(w.check(2, &map(d), 47.0, "depth", "max_disparity"), 0.04);
+        let c = w.check(2, &map(d), 47.0, "depth", "max_disparity");
+        assert_eq!(c.share, 0.04);
         assert_eq!(w.frames, 1);
         // No valid pixel: nothing to flag.
-        assert_eq!(
-            w.check(3, &map(vec![f32::NAN; 4]), 47.0, "depth", "max_disparity"),
-            0.0
-        );
+        let c = w.check(3, &map(vec![f32::NAN; 4]), 47.0, "depth", "max_disparity");
+        assert_eq!((c.share, c.valid), (0.0, 0));
         assert_eq!(w.frames, 1);
     }
 

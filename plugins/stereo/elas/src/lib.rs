@@ -559,7 +559,7 @@ impl Node for ElasNode {
             .disparity(pair)
             .map_err(|e| NodeError::msg(format!("frame {}: {e}", frame.index)))?;
         let top = self.params.disp_max as f32;
-        let at_top = self.range.check(frame.index, &map, top, ctx.id, "disp_max");
+        let range = self.range.check(frame.index, &map, top, ctx.id, "disp_max");
         let calib = pair.calib;
         if out.support.len() < 3 {
             tracing::warn!(
@@ -571,8 +571,7 @@ impl Node for ElasNode {
                 self.params.disp_max
             );
         }
-        let valid = map.data.iter().filter(|d| d.is_finite()).count();
-        let density = 100.0 * valid as f64 / map.data.len().max(1) as f64;
+        let density = 100.0 * range.valid as f64 / map.data.len().max(1) as f64;
         let support = PointCloud {
             positions: out
                 .support
@@ -603,7 +602,7 @@ impl Node for ElasNode {
         metrics.values.insert("elas.density_pct".into(), density);
         metrics
             .values
-            .insert("elas.range_top_pct".into(), 100.0 * at_top);
+            .insert("elas.range_top_pct".into(), 100.0 * range.share);
         let t = out.timing;
         for (k, v) in [
             ("descriptors", t.descriptors),
@@ -659,7 +658,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
             PortSpec::new(
                 "metrics",
                 PortType::Metrics,
-                "elas.support_points, elas.triangles, elas.density_pct (of the left image), elas.ms.<step>",
+                "elas.support_points, elas.triangles, elas.density_pct (of the left image), elas.range_top_pct (of its valid pixels, at the largest disparity), elas.ms.<step>",
             ),
         ],
         build,
