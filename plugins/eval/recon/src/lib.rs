@@ -10,6 +10,8 @@
 //! | `recon.drift_mm` | material drift of the surfels or mesh vertices (with `rest_points_gt` and `depth_gt`), mm |
 //! | `recon.vertex_mm` | with `vertex_error`: mean distance of each mesh vertex from the GT vertex it tracks, mm |
 //! | `recon.vertex_seen_mm` | the same over the GT vertices the true camera sees (with `depth_gt` and `pose_gt`), mm |
+//! | `recon.observed_mm` | with `vertex_error`, `depth_gt` and `pose_gt`: `mean_mm` over the vertices the true camera has seen on this frame or an earlier one, mm |
+//! | `recon.unobserved_mm` | `mean_mm` over the rest: vertices never seen so far, placed only by the warp's extrapolation, mm |
 //!
 //! Material drift follows each surfel of a model (by its id), or each vertex of a mesh (by its
 //! index: a deformed template), over the frames: where it projects
@@ -38,7 +40,7 @@ use rayon::prelude::*;
 mod index;
 mod tracked;
 pub use index::{point_triangle_dist2, SurfaceIndex};
-pub use tracked::{seen_vertices, vertex_error, Drift};
+pub use tracked::{seen_vertices, vertex_error, Drift, Observed};
 
 /// Parameters of `eval.recon`.
 #[derive(Clone, Debug, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
@@ -187,6 +189,8 @@ pub struct EvalRecon {
     drift: Drift,
     /// The GT surface's index, refit from frame to frame while its triangles stay the same.
     index: Option<SurfaceIndex>,
+    /// With `vertex_error`: the GT vertices the true camera has seen so far.
+    observed: Observed,
 }
 
 impl Node for EvalRecon {
@@ -289,6 +293,15 @@ impl Node for EvalRecon {
                         .map(|((p, q), _)| (dot(sub(*p, *q), sub(*p, *q)) as f64).sqrt())
                         .sum();
                     values.push((k("vertex_seen_mm"), sum / n as f64));
+                }
+                // The surface distance split by whether the data could ever have placed the
+                // vertex: seen on this frame or an earlier one, or never (extrapolated).
+                let (observed, unobserved) = self.observed.frame(&seen, &dist);
+                if let Some(m) = observed {
+                    values.push((k("observed_mm"), m));
+                }
+                if let Some(m) = unobserved {
+                    values.push((k("unobserved_mm"), m));
                 }
             }
         }
@@ -412,6 +425,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
                 means: FrameMeans::default(),
                 drift: Drift::default(),
                 index: None,
+                observed: Observed::default(),
             })
         },
     ))
@@ -578,6 +592,24 @@ mod tests {
             assert_eq!(*s, in_view && !hidden, "{v:?}");
         }
         assert!(seen.iter().filter(|&&s| s).count() > 30);
+    }
+
+    #[test]
+    fn observed_vertices_stay_observed_once_seen() {
+        let mut o = Observed::default();
+        let dist = [1.0f32, 2.0, 3.0, 6.0];
+        // Frame 1 sees vertices 0 and 1.
+        let r = o.frame(&[true, true, false, false], &dist);
+        assert_eq!(r, (Some(1.5), Some(4.5)));
+        // Frame 2 sees only vertex 2: 0 and 1 were seen before and stay on the observed side.
+        let r = o.frame(&[false, false, true, false], &dist);
+        assert_eq!(r, (Some(2.0), Some(6.0)));
+        // Everything seen: no unobserved side.
+        let r = o.frame(&[false, false, false, true], &dist);
+        assert_eq!(r, (Some(3.0), None));
+        // Another mesh (a different vertex count) starts over.
+        let r = o.frame(&[false, true], &[1.0, 3.0]);
+        assert_eq!(r, (Some(3.0), Some(1.0)));
     }
 
     #[test]

@@ -102,6 +102,33 @@ pub fn vertex_error(points: &[V3], gt: &Mesh, from_mesh: bool) -> Result<f64, St
     Ok(sum / points.len().max(1) as f64)
 }
 
+/// The GT vertices a true camera has seen so far, which split a template's surface error into
+/// what the data has placed and what only the warp's extrapolation has (never seen yet).
+#[derive(Default)]
+pub struct Observed {
+    seen: Vec<bool>,
+}
+
+impl Observed {
+    /// Adds this frame's `seen` vertices, then returns the mean of `dist` (per vertex) over the
+    /// vertices seen so far and over the others (None for an empty side). A change of the vertex
+    /// count starts over.
+    pub fn frame(&mut self, seen: &[bool], dist: &[f32]) -> (Option<f64>, Option<f64>) {
+        if self.seen.len() != seen.len() {
+            self.seen = vec![false; seen.len()];
+        }
+        let (mut sum, mut n) = ([0.0f64; 2], [0usize; 2]);
+        for ((o, &s), &d) in self.seen.iter_mut().zip(seen).zip(dist) {
+            *o |= s;
+            let side = usize::from(!*o);
+            sum[side] += d as f64;
+            n[side] += 1;
+        }
+        let mean = |s: usize| (n[s] > 0).then(|| sum[s] / n[s] as f64);
+        (mean(0), mean(1))
+    }
+}
+
 /// Which vertices of `gt` (world frame) the camera at `world_from_camera` sees: in the image and
 /// within `max_gap` mm of the true depth at their pixel (in front of the surface, not behind a
 /// fold).
