@@ -19,6 +19,7 @@ pub mod observe;
 mod pairs;
 pub mod problem;
 mod residuals;
+mod sampling;
 mod schur;
 pub mod solver;
 pub mod system;
