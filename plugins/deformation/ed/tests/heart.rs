@@ -151,6 +151,76 @@ impl Heart {
     fn model_at(&self, f: usize) -> Vec<Vector3<f64>> {
         interpolate(&self.samples, &self.frames[f])
     }
+
+    /// The mesh vertices seen on the last frame: the true vertex lies on that frame's scan
+    /// (identity warp at the true positions).
+    fn seen_at_last(&self) -> Vec<bool> {
+        let rest = &self.frames[0];
+        let truth = &self.frames[self.last];
+        let nv = rest.len();
+        let maps = self.render(self.last);
+        let identity = EdGraph::from_points(rest, GraphParams::default()).unwrap();
+        let mut is_seen = vec![false; nv];
+        for i in visible_points(
+            &identity,
+            truth,
+            &self.normals,
+            &identity.bind_all(truth),
+            &self.world_from_camera,
+            &K,
+            &maps.0,
+            &maps.1,
+            0.5,
+            75.0,
+        ) {
+            is_seen[i as usize] = true;
+        }
+        assert!(
+            is_seen.iter().filter(|&&s| s).count() > 200,
+            "too few seen vertices"
+        );
+        is_seen
+    }
+}
+
+/// The displacements of the smooth field of `degree` (per axis, every monomial of the centred
+/// rest coordinates up to that degree) fitted by least squares to the displacements `disp` of the
+/// vertices `fit` marks, at every vertex: an oracle of what a global smooth motion model can
+/// predict.
+fn polynomial_field(
+    rest: &[Vector3<f64>],
+    disp: &[Vector3<f64>],
+    fit: &[bool],
+    degree: i32,
+) -> Vec<Vector3<f64>> {
+    use misslam_framework::nalgebra::DMatrix;
+    let c = rest.iter().sum::<Vector3<f64>>() / rest.len() as f64;
+    let mut powers = Vec::new();
+    for a in 0..=degree {
+        for b in 0..=degree - a {
+            for e in 0..=degree - a - b {
+                powers.push([a, b, e]);
+            }
+        }
+    }
+    // Coordinates in units of 40 mm keep the monomials of one size.
+    let row = |p: &Vector3<f64>| -> Vec<f64> {
+        let q = (p - c) / 40.0;
+        powers
+            .iter()
+            .map(|k| q.x.powi(k[0]) * q.y.powi(k[1]) * q.z.powi(k[2]))
+            .collect()
+    };
+    let rows: Vec<usize> = (0..rest.len()).filter(|&i| fit[i]).collect();
+    let a = DMatrix::from_fn(rows.len(), powers.len(), |r, m| row(&rest[rows[r]])[m]);
+    let b = DMatrix::from_fn(rows.len(), 3, |r, k| disp[rows[r]][k]);
+    let x = a.svd(true, true).solve(&b, 1e-12).unwrap();
+    rest.iter()
+        .map(|p| {
+            let m = row(p);
+            Vector3::from_fn(|k, _| (0..powers.len()).map(|j| m[j] * x[(j, k)]).sum())
+        })
+        .collect()
 }
 
 fn interpolate(samples: &[([usize; 3], [f64; 3])], v: &[Vector3<f64>]) -> Vec<Vector3<f64>> {
@@ -249,28 +319,7 @@ fn run(h: &Heart, v: Variant, params: &SolverParams) -> Outcome {
         }
     }
     let truth = &h.frames[h.last];
-    let maps = h.render(h.last);
-    // Seen: the true vertex lies on the last frame's scan (identity warp at the true positions).
-    let identity = EdGraph::from_points(rest, GraphParams::default()).unwrap();
-    let mut is_seen = vec![false; nv];
-    for i in visible_points(
-        &identity,
-        truth,
-        &h.normals,
-        &identity.bind_all(truth),
-        &h.world_from_camera,
-        &K,
-        &maps.0,
-        &maps.1,
-        0.5,
-        75.0,
-    ) {
-        is_seen[i as usize] = true;
-    }
-    assert!(
-        is_seen.iter().filter(|&&s| s).count() > 200,
-        "too few seen vertices"
-    );
+    let is_seen = h.seen_at_last();
     let mean = |f: &dyn Fn(usize) -> f64, s: bool| {
         let v: Vec<f64> = (0..nv).filter(|&i| is_seen[i] == s).map(f).collect();
         v.iter().sum::<f64>() / v.len().max(1) as f64
@@ -362,6 +411,41 @@ fn the_beating_heart_is_tracked_from_noise_free_depth() {
             o.motion_unseen
         );
     }
+    // What a global smooth motion model could do there (oracles, not methods): polynomial fields
+    // fitted by least squares to the true displacements, of the seen vertices or of every vertex
+    // (the unseen ones included, which no method observes).
+    let (rest, truth) = (&h.frames[0], &h.frames[h.last]);
+    let disp: Vec<Vector3<f64>> = truth.iter().zip(rest).map(|(t, r)| t - r).collect();
+    let seen = h.seen_at_last();
+    let unseen_error = |pred: &[Vector3<f64>]| {
+        let e: Vec<f64> = (0..rest.len())
+            .filter(|&i| !seen[i])
+            .map(|i| (pred[i] - disp[i]).norm())
+            .collect();
+        e.iter().sum::<f64>() / e.len() as f64
+    };
+    let every = vec![true; rest.len()];
+    let mut oracle = std::collections::BTreeMap::new();
+    for (set, fit) in [("the seen vertices'", &seen), ("every vertex's", &every)] {
+        for degree in 1..=3 {
+            let e = unseen_error(&polynomial_field(rest, &disp, fit, degree));
+            println!(
+                "polynomial field of degree {degree} fitted to {set} true motion: unseen {e:.3} mm"
+            );
+            oracle.insert((set, degree), e);
+        }
+    }
+    // The graph, fed only the seen side, predicts the unseen side better than any of these
+    // fitted to the seen side's exact motion (measured 0.78 mm against 1.83, 2.89 and 4.45 for
+    // degrees 1 to 3; fitted to every vertex 0.86, 0.60 and 0.33).
+    let best_from_seen = (1..=3)
+        .map(|d| oracle[&("the seen vertices'", d)])
+        .fold(f64::INFINITY, f64::min);
+    assert!(
+        b.unseen < best_from_seen,
+        "batch unseen {} vs the best field fitted to the seen side {best_from_seen}",
+        b.unseen
+    );
 }
 
 #[test]
