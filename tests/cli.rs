@@ -223,6 +223,64 @@ fn inspect_on_hamlyn_saves_a_recording_the_rerun_cli_verifies() {
     }
 }
 
+/// `graph.log_every` thins a recording's images, maps and meshes, not its scalars.
+#[test]
+fn log_every_thins_the_recording() {
+    let dir = common::tmp_dir("log_every");
+    let record = |every: u32| {
+        let rrd = dir.join(format!("every{every}.rrd"));
+        let out = misslam()
+            .args(["run", "graphs/phantom.toml", "--quiet", "--frames", "6"])
+            .args(["--set", "src.width=160", "--set", "src.height=120"])
+            .arg("--set")
+            .arg(format!("graph.log_every={every}"))
+            .arg("--out")
+            .arg(dir.join(format!("out{every}")))
+            .arg("--rerun")
+            .arg(format!("save:{}", rrd.display()))
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        rrd
+    };
+    let (all, thin) = (record(1), record(3));
+    let size = |p: &std::path::Path| std::fs::metadata(p).unwrap().len();
+    // Frames 0 and 3 of 6 in full: about a third of the bytes.
+    assert!(
+        size(&thin) * 2 < size(&all),
+        "log_every = 3: {} bytes against {}",
+        size(&thin),
+        size(&all)
+    );
+    let Some(print) = common::rerun_verified(&thin) else {
+        return;
+    };
+    // `-v`: a line per chunk, "Chunk(..) with N rows (..) - /entity - data columns: [..]".
+    let chunks = print("-v");
+    let rows = |entity: &str| -> usize {
+        chunks
+            .lines()
+            .filter(|l| l.contains(&format!(" - {entity} - ")))
+            .filter_map(|l| {
+                l.split(" with ")
+                    .nth(1)?
+                    .split(' ')
+                    .next()?
+                    .parse::<usize>()
+                    .ok()
+            })
+            .sum()
+    };
+    // The source's timing, a scalar, on all 6 frames; its images and GT mesh on frames 0 and 3.
+    assert_eq!(rows("/timing/src"), 6, "{chunks}");
+    assert_eq!(rows("/src/left"), 2, "{chunks}");
+    assert_eq!(rows("/src/mesh_gt"), 2, "{chunks}");
+}
+
 fn inspect_recording(data: &std::path::Path, pipeline: &str) {
     let out_dir = common::tmp_dir(&format!("inspect{pipeline}"));
     let rrd = out_dir.join("out.rrd");

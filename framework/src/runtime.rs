@@ -199,7 +199,8 @@ impl Runtime {
             cause,
         })?;
         let mut recorder = opts.recorder.take();
-        if let Some(r) = &recorder {
+        if let Some(r) = &mut recorder {
+            r.set_log_every(self.graph.log_every);
             r.log_graph(&self.graph)?;
         }
         let limit = opts.frames.or(self.graph.frames.count);

@@ -76,6 +76,7 @@ struct GraphSection {
     parallel: Option<bool>,
     pipeline: Option<Spanned<u32>>,
     level_threads: Option<u32>,
+    log_every: Option<Spanned<u32>>,
     #[serde(default)]
     libraries: Vec<Spanned<String>>,
 }
@@ -154,6 +155,9 @@ pub struct Graph {
     /// Threads of each level's pool in the pipelined schedule (0: half the cores, at least 2;
     /// see [`Graph::level_pool_threads`]).
     pub level_threads: u32,
+    /// The recorder logs images, maps, clouds, models and meshes on every `log_every`-th frame
+    /// from the first, scalars and poses on every frame (at least 1; 1: everything every frame).
+    pub log_every: u32,
     /// Nodes in topological order.
     pub nodes: Vec<NodeSpec>,
 }
@@ -261,6 +265,13 @@ pub fn parse(
         .collect::<Result<_, _>>()?;
     for o in parsed.iter().filter(|o| o.target == "graph") {
         apply_graph_override(file, &mut section, o)?;
+    }
+    if let Some(p) = section.log_every.as_ref().filter(|p| *p.get_ref() == 0) {
+        return Err(at(
+            p.span(),
+            "`log_every` takes a number of frames, at least 1 (1: log everything every frame)"
+                .into(),
+        ));
     }
     if let Some(p) = section.pipeline.as_ref().filter(|p| *p.get_ref() == 0) {
         return Err(at(
@@ -620,6 +631,7 @@ pub fn parse(
         parallel: section.parallel.unwrap_or(true),
         pipeline: section.pipeline.as_ref().map_or(1, |p| *p.get_ref()),
         level_threads: section.level_threads.unwrap_or(0),
+        log_every: section.log_every.as_ref().map_or(1, |p| *p.get_ref()),
         nodes,
     })
 }
@@ -660,6 +672,14 @@ fn apply_graph_override(file: &Path, g: &mut GraphSection, o: &Override) -> Resu
                 .ok_or_else(|| err("`graph.level_threads` takes a number of threads (0: half the cores)".into()))?;
             g.level_threads = Some(n);
         }
+        "log_every" => {
+            let n = v
+                .as_integer()
+                .and_then(|n| u32::try_from(n).ok())
+                .filter(|&n| n >= 1)
+                .ok_or_else(|| err("`graph.log_every` takes a number of frames, at least 1".into()))?;
+            g.log_every = Some(Spanned::new(0..0, n));
+        }
         "on_error" => {
             g.on_error = Some(match v.as_str() {
                 Some("abort") => ErrorPolicy::Abort,
@@ -669,7 +689,7 @@ fn apply_graph_override(file: &Path, g: &mut GraphSection, o: &Override) -> Resu
         }
         _ => {
             return Err(err(format!(
-                "unknown graph setting `{key}`; known: seed, frames.start, frames.count, name, out, parallel, pipeline, level_threads, on_error"
+                "unknown graph setting `{key}`; known: seed, frames.start, frames.count, name, out, parallel, pipeline, level_threads, log_every, on_error"
             )))
         }
     }
