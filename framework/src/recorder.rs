@@ -556,12 +556,12 @@ mod tests {
         assert!(probe_viewer("rerun+http://localhost/proxy").is_ok());
     }
 
-    #[test]
-    fn a_mesh_repeated_as_the_same_arc_is_logged_once() {
+    /// A recorder writing into memory, and what it wrote.
+    fn memory_recorder() -> (Recorder, rerun::sink::MemorySinkStorage) {
         let (rec, storage) = rerun::RecordingStreamBuilder::new("misslam-test")
             .memory()
             .unwrap();
-        let mut r = Recorder {
+        let r = Recorder {
             rec,
             every: 1,
             first: None,
@@ -571,6 +571,12 @@ mod tests {
             flush_timeout: None,
             gave_up: false.into(),
         };
+        (r, storage)
+    }
+
+    #[test]
+    fn a_mesh_repeated_as_the_same_arc_is_logged_once() {
+        let (mut r, storage) = memory_recorder();
         let mesh = Arc::new(Mesh {
             vertices: vec![[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]],
             normals: None,
@@ -596,19 +602,7 @@ mod tests {
 
     #[test]
     fn log_every_keeps_scalars_and_poses_on_every_frame() {
-        let (rec, storage) = rerun::RecordingStreamBuilder::new("misslam-test")
-            .memory()
-            .unwrap();
-        let mut r = Recorder {
-            rec,
-            every: 1,
-            first: None,
-            full: true,
-            trajectories: HashMap::new(),
-            meshes: HashMap::new(),
-            flush_timeout: None,
-            gave_up: false.into(),
-        };
+        let (mut r, storage) = memory_recorder();
         r.set_log_every(3);
         let image = Payload::Image(Arc::new(
             crate::payload::Image::new(2, 2, 1, vec![7; 4]).unwrap(),
