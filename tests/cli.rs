@@ -223,28 +223,50 @@ fn inspect_on_hamlyn_saves_a_recording_the_rerun_cli_verifies() {
     }
 }
 
+/// `misslam run GRAPH --quiet` with `--set`s (and at most `frames` frames) into `out`, recorded
+/// to `rrd`; fails the test with the run's stderr when the run fails.
+fn run_recorded(
+    graph: &str,
+    sets: &[String],
+    frames: Option<u32>,
+    out: &std::path::Path,
+    rrd: &std::path::Path,
+) {
+    let mut cmd = misslam();
+    cmd.args(["run", graph, "--quiet"]);
+    for s in sets {
+        cmd.arg("--set").arg(s);
+    }
+    if let Some(n) = frames {
+        cmd.arg("--frames").arg(n.to_string());
+    }
+    let run = cmd
+        .arg("--out")
+        .arg(out)
+        .arg("--rerun")
+        .arg(format!("save:{}", rrd.display()))
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+}
+
 /// `graph.log_every` thins a recording's images, maps and meshes, not its scalars.
 #[test]
 fn log_every_thins_the_recording() {
     let dir = common::tmp_dir("log_every");
     let record = |every: u32| {
         let rrd = dir.join(format!("every{every}.rrd"));
-        let out = misslam()
-            .args(["run", "graphs/phantom.toml", "--quiet", "--frames", "6"])
-            .args(["--set", "src.width=160", "--set", "src.height=120"])
-            .arg("--set")
-            .arg(format!("graph.log_every={every}"))
-            .arg("--out")
-            .arg(dir.join(format!("out{every}")))
-            .arg("--rerun")
-            .arg(format!("save:{}", rrd.display()))
-            .output()
-            .unwrap();
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        let sets = [
+            "src.width=160".to_owned(),
+            "src.height=120".to_owned(),
+            format!("graph.log_every={every}"),
+        ];
+        let out = dir.join(format!("out{every}"));
+        run_recorded("graphs/phantom.toml", &sets, Some(6), &out, &rrd);
         rrd
     };
     let (all, thin) = (record(1), record(3));
@@ -284,22 +306,11 @@ fn log_every_thins_the_recording() {
 fn inspect_recording(data: &std::path::Path, pipeline: &str) {
     let out_dir = common::tmp_dir(&format!("inspect{pipeline}"));
     let rrd = out_dir.join("out.rrd");
-    let out = misslam()
-        .args(["run", "graphs/inspect.toml", "--quiet", "--set"])
-        .arg(format!("src.path={}", data.display()))
-        .arg("--set")
-        .arg(format!("graph.pipeline={pipeline}"))
-        .arg("--out")
-        .arg(&out_dir)
-        .arg("--rerun")
-        .arg(format!("save:{}", rrd.display()))
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let sets = [
+        format!("src.path={}", data.display()),
+        format!("graph.pipeline={pipeline}"),
+    ];
+    run_recorded("graphs/inspect.toml", &sets, None, &out_dir, &rrd);
     let metrics: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out_dir.join("metrics.json")).unwrap())
             .unwrap();
