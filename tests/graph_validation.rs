@@ -234,6 +234,10 @@ fn a_nan_or_an_infinity_where_a_number_is_needed_is_refused_naming_it() {
             "fusion.data_points_per_node=-1",
             "parameter `data_points_per_node`: must be a finite number >= 0 (0: off), got -1",
         ),
+        (
+            "fusion.solve_points_per_node=inf",
+            "parameter `solve_points_per_node`: must be a finite number >= 0 (0: off), got inf",
+        ),
     ] {
         let sets = [set.to_string()];
         let g = graph::load(Path::new("graphs/mis_slam.toml"), &registry, &sets)

@@ -45,6 +45,27 @@ pub fn data_weight_scale(per_node: f64, reference: f64) -> f64 {
     }
 }
 
+/// The visible surfels a solve takes: all of them while they average at most `cap` per node
+/// they bind (`per_node`, [`data_points_per_node`]; `cap` 0: off), else one in
+/// ceil(`per_node` / `cap`), picked by a hash of the surfel's index so that the ones kept spread
+/// over the surface without following the order in which the surfels were added. `None`: all.
+pub fn thin_visible(visible: &[u32], per_node: f64, cap: f64) -> Option<Vec<u32>> {
+    if !(cap > 0.0 && per_node > cap) {
+        return None;
+    }
+    let k = (per_node / cap).ceil() as u64;
+    Some(
+        visible
+            .iter()
+            .copied()
+            .filter(|&i| {
+                // A 64-bit multiplicative hash (Fibonacci hashing), its high bits modulo k.
+                (u64::from(i).wrapping_mul(0x9e37_79b9_7f4a_7c15) >> 32) % k == 0
+            })
+            .collect(),
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -84,5 +105,27 @@ mod tests {
         assert_eq!(data_weight_scale(880.0, 32.0), 32.0 / 880.0);
         assert_eq!(data_weight_scale(20.0, 32.0), 1.0);
         assert_eq!(data_weight_scale(880.0, 0.0), 1.0);
+    }
+
+    #[test]
+    fn thinning_keeps_one_in_k_spread_over_the_indices() {
+        let visible: Vec<u32> = (0..30_000).collect();
+        // At or under the cap, or with the cap off, every point stays.
+        assert_eq!(thin_visible(&visible, 48.0, 64.0), None);
+        assert_eq!(thin_visible(&visible, 64.0, 64.0), None);
+        assert_eq!(thin_visible(&visible, 500.0, 0.0), None);
+        // 140 per node with a cap of 64: one in 3.
+        let kept = thin_visible(&visible, 140.0, 64.0).unwrap();
+        let share = kept.len() as f64 / visible.len() as f64;
+        assert!((share - 1.0 / 3.0).abs() < 0.01, "kept {share}");
+        // In order, and spread: every block of 300 consecutive indices keeps 100 +- 30.
+        assert!(kept.windows(2).all(|p| p[0] < p[1]));
+        for b in 0..100u32 {
+            let n = kept.iter().filter(|&&i| i / 300 == b).count();
+            assert!((70..=130).contains(&n), "block {b} kept {n}");
+        }
+        // Not a regular stride: gaps of 1 to 3 and longer all occur.
+        let gaps: std::collections::BTreeSet<u32> = kept.windows(2).map(|p| p[1] - p[0]).collect();
+        assert!(gaps.contains(&1) && gaps.len() > 4, "gaps {gaps:?}");
     }
 }

@@ -41,7 +41,7 @@ use misslam_framework::{
 };
 use rayon::prelude::*;
 
-pub use balance::{data_points_per_node, data_weight_scale, COLLAPSE_DET};
+pub use balance::{data_points_per_node, data_weight_scale, thin_visible, COLLAPSE_DET};
 use corr::local_inverses;
 pub use corr::CorrParams;
 pub use misslam_deformation_ed::engine::SolverKind;
@@ -180,6 +180,8 @@ pub struct SurfelNode {
     /// kept for a later iteration (for `metrics.json`).
     solves: u64,
     corr_used: u64,
+    /// Visible surfels over the solves, and those the solves took (`solve_points_per_node`).
+    visible_used: (u64, u64),
     factorisations: u64,
     reused_factorisations: u64,
 }
@@ -323,11 +325,19 @@ impl SurfelNode {
                 },
             );
             let corrs = corrs.map_err(NodeError::msg)?;
-            self.subset
-                .gather(&visible, &m.canon, &m.normals, &m.bindings);
-            // E_data normalised by its term count per node.
-            let per_node =
+            // E_data on at most `solve_points_per_node` per node, normalised by its term count.
+            let mut per_node =
                 data_points_per_node(&visible, &m.bindings, graph.len(), &mut self.bound);
+            let thinned = thin_visible(&visible, per_node, self.p.solve_points_per_node);
+            if let Some(t) = &thinned {
+                per_node = data_points_per_node(t, &m.bindings, graph.len(), &mut self.bound);
+            }
+            let solved = thinned.as_deref().unwrap_or(&visible);
+            self.subset
+                .gather(solved, &m.canon, &m.normals, &m.bindings);
+            metrics
+                .values
+                .insert("fusion.solve_points".into(), solved.len() as f64);
             let mut solver = self.p.solver.clone();
             solver.weights.data *= data_weight_scale(per_node, self.p.data_points_per_node);
             metrics
@@ -341,6 +351,8 @@ impl SurfelNode {
                 .insert("fusion.anchors".into(), self.corr.anchors() as f64);
             self.solves += 1;
             self.corr_used += corrs.len() as u64;
+            self.visible_used.0 += visible.len() as u64;
+            self.visible_used.1 += self.subset.points.len() as u64;
             let problem = Problem {
                 model: self.subset.view(),
                 scan: Some(Scan {
@@ -716,6 +728,10 @@ impl Node for SurfelNode {
             self.reused_factorisations as f64 / self.solves.max(1) as f64,
         );
         ctx.report_eval("fusion.anchors", self.corr.anchors() as f64);
+        let (visible, used) = self.visible_used;
+        if visible > 0 {
+            ctx.report_eval("fusion.solve_points_share", used as f64 / visible as f64);
+        }
         Ok(())
     }
 
@@ -783,6 +799,7 @@ pub fn build(p: Params, _: &BuildContext) -> Result<SurfelNode, BuildError> {
         corr: corr::CorrTracker::default(),
         solves: 0,
         corr_used: 0,
+        visible_used: (0, 0),
         factorisations: 0,
         reused_factorisations: 0,
     })
@@ -828,7 +845,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
             PortSpec::new(
                 "info",
                 PortType::Metrics,
-                "fusion.surfels, nodes, fused, added, removed, visible, solve_ms, iterations, factorisations, reused_factorisations, rejected_steps, correspondences, anchors, data_points_per_node (E_data's term count per node), collapsed_nodes (nodes whose affine collapsed, reset to their nearest rotation)",
+                "fusion.surfels, nodes, fused, added, removed, visible, solve_ms, iterations, factorisations, reused_factorisations, rejected_steps, correspondences, anchors, data_points_per_node (E_data's term count per node), solve_points (the visible surfels the solve took, `solve_points_per_node`), collapsed_nodes (nodes whose affine collapsed, reset to their nearest rotation)",
             ),
         ],
         build,
