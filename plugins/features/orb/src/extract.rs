@@ -2,6 +2,7 @@
 //! ranking, an even spread over the image, intensity-centroid orientation and steered BRIEF.
 
 use misslam_framework::Keypoint;
+use rayon::prelude::*;
 
 use crate::fast::{self, Corner, FastScratch};
 use crate::learned_pattern::LEARNED;
@@ -211,6 +212,12 @@ fn gaussian_pattern() -> &'static [[f32; 4]; 256] {
 #[derive(Default)]
 pub struct OrbScratch {
     levels: Vec<Level>,
+    work: Vec<LevelWork>,
+}
+
+/// One level's buffers and output, so that the levels run in parallel.
+#[derive(Default)]
+struct LevelWork {
     fast: FastScratch,
     corners: Vec<Corner>,
     nms_map: Vec<u8>,
@@ -219,6 +226,8 @@ pub struct OrbScratch {
     cells: Vec<u32>,
     blur_tmp: Vec<u16>,
     kept: Vec<(Corner, f32)>,
+    keypoints: Vec<Keypoint>,
+    descriptors: Vec<[u64; 4]>,
 }
 
 impl OrbScratch {
@@ -249,49 +258,27 @@ pub fn extract(
     keypoints.clear();
     descriptors.clear();
     build_pyramid(gray, width, height, params, scratch);
+    // The levels in parallel (each with its own buffers), their keypoints then concatenated in
+    // level order: the output of one level after the other.
     let per_level = params.per_level();
-    for (l, &want) in per_level.iter().enumerate() {
-        if want == 0 {
-            continue;
-        }
-        let (w, h) = (scratch.levels[l].width, scratch.levels[l].height);
-        let e = params.edge_threshold;
-        if w <= 2 * e + 1 || h <= 2 * e + 1 {
-            continue;
-        }
-        detect_level(l, params, scratch);
-        select(l, want, params, scratch);
-        let level = &scratch.levels[l];
-        // Level pixel centres to level-0 pixel centres: each level is resized from the one
-        // before with centres aligned, so x0 + 0.5 = (x_l + 0.5) * (width / w).
-        let (sx, sy) = (width as f32 / w as f32, height as f32 / h as f32);
-        for &(c, response) in &scratch.kept {
-            let angle = if params.oriented {
-                orientation(&level.data, w, c.x as i32, c.y as i32)
-            } else {
-                f32::NAN
-            };
-            descriptors.push(describe(
-                &level.smooth,
-                w,
-                c.x as i32,
-                c.y as i32,
-                angle,
-                params.pattern,
-            ));
-            keypoints.push(Keypoint {
-                x: (c.x as f32 + 0.5) * sx - 0.5,
-                y: (c.y as f32 + 0.5) * sy - 0.5,
-                size: 31.0 * level.scale,
-                angle,
-                response,
-                octave: l as i32,
-            });
-        }
+    scratch.work.resize_with(params.levels, LevelWork::default);
+    scratch
+        .levels
+        .par_iter_mut()
+        .zip(scratch.work.par_iter_mut())
+        .zip(per_level.par_iter())
+        .enumerate()
+        .for_each(|(l, ((level, work), &want))| {
+            extract_level(l, want, (width, height), params, level, work)
+        });
+    for work in &scratch.work {
+        keypoints.extend_from_slice(&work.keypoints);
+        descriptors.extend_from_slice(&work.descriptors);
     }
     Ok(())
 }
 
+/// Resizes each level from the one before (the smoothing is [`extract_level`]'s).
 fn build_pyramid(gray: &[u8], width: usize, height: usize, p: &OrbParams, s: &mut OrbScratch) {
     s.levels.resize_with(p.levels, Level::default);
     for l in 0..p.levels {
@@ -317,14 +304,60 @@ fn build_pyramid(gray: &[u8], width: usize, height: usize, p: &OrbParams, s: &mu
         lv.width = w;
         lv.height = h;
         lv.scale = scale;
-        gaussian7(&lv.data, w, h, &mut lv.smooth, &mut s.blur_tmp);
+    }
+}
+
+/// One level: its smoothed image, then `want` keypoints (level-0 coordinates of the
+/// `width` x `height` image) with their descriptors in `work`.
+fn extract_level(
+    l: usize,
+    want: usize,
+    (width, height): (usize, usize),
+    params: &OrbParams,
+    level: &mut Level,
+    work: &mut LevelWork,
+) {
+    let (w, h) = (level.width, level.height);
+    gaussian7(&level.data, w, h, &mut level.smooth, &mut work.blur_tmp);
+    work.keypoints.clear();
+    work.descriptors.clear();
+    let e = params.edge_threshold;
+    if want == 0 || w <= 2 * e + 1 || h <= 2 * e + 1 {
+        return;
+    }
+    detect_level(level, params, work);
+    select(level, want, params, work);
+    // Level pixel centres to level-0 pixel centres: each level is resized from the one before
+    // with centres aligned, so x0 + 0.5 = (x_l + 0.5) * (width / w).
+    let (sx, sy) = (width as f32 / w as f32, height as f32 / h as f32);
+    for &(c, response) in &work.kept {
+        let angle = if params.oriented {
+            orientation(&level.data, w, c.x as i32, c.y as i32)
+        } else {
+            f32::NAN
+        };
+        work.descriptors.push(describe(
+            &level.smooth,
+            w,
+            c.x as i32,
+            c.y as i32,
+            angle,
+            params.pattern,
+        ));
+        work.keypoints.push(Keypoint {
+            x: (c.x as f32 + 0.5) * sx - 0.5,
+            y: (c.y as f32 + 0.5) * sy - 0.5,
+            size: 31.0 * level.scale,
+            angle,
+            response,
+            octave: l as i32,
+        });
     }
 }
 
 /// FAST at `fast_threshold` over the level, again at `min_fast_threshold` in empty cells, then
 /// non-maximum suppression.
-fn detect_level(l: usize, p: &OrbParams, s: &mut OrbScratch) {
-    let lv = &s.levels[l];
+fn detect_level(lv: &Level, p: &OrbParams, s: &mut LevelWork) {
     let (w, h) = (lv.width, lv.height);
     let e = p.edge_threshold;
     // FAST itself needs 3 pixels; keypoints must stay `e` inside.
@@ -407,8 +440,7 @@ fn harris(img: &[u8], w: usize, x: i32, y: i32, k: f32) -> f32 {
 }
 
 /// Ranks the level's corners by Harris response and keeps `want` of them, spread as asked.
-fn select(l: usize, want: usize, p: &OrbParams, s: &mut OrbScratch) {
-    let lv = &s.levels[l];
+fn select(lv: &Level, want: usize, p: &OrbParams, s: &mut LevelWork) {
     let w = lv.width;
     // Harris only for the strongest corners by FAST score (OpenCV's ORB does the same).
     let budget = (PREFILTER * want).max(64);
@@ -673,6 +705,68 @@ mod tests {
         }
         // 1000 (1 - 1/1.2) / (1 - 1.2^-8) = 217.
         assert_eq!(n[0], 217);
+    }
+
+    #[test]
+    fn levels_in_parallel_give_one_level_after_the_other() {
+        // A textured image: blobs of every size, so that every level finds corners.
+        let (w, h) = (320, 240);
+        let mut state = 12345u32;
+        let mut img = vec![0u8; w * h];
+        for _ in 0..400 {
+            state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            let (cx, cy, r) = (
+                state % w as u32,
+                (state >> 9) % h as u32,
+                2 + (state >> 20) % 14,
+            );
+            let v = (state >> 24) as u8;
+            for y in cy.saturating_sub(r)..(cy + r).min(h as u32) {
+                for x in cx.saturating_sub(r)..(cx + r).min(w as u32) {
+                    img[y as usize * w + x as usize] = v;
+                }
+            }
+        }
+        let p = OrbParams {
+            n_features: 500,
+            ..Default::default()
+        };
+        let run = |threads: usize, scratch: &mut OrbScratch| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let (mut k, mut d) = (Vec::new(), Vec::new());
+            pool.install(|| extract(&img, w, h, &p, scratch, &mut k, &mut d))
+                .unwrap();
+            (k, d)
+        };
+        let mut scratch = OrbScratch::default();
+        let (k1, d1) = run(1, &mut scratch);
+        // Level by level, each within its share, and every level finds some.
+        let want = p.per_level();
+        let octaves: Vec<i32> = k1.iter().map(|k| k.octave).collect();
+        assert!(octaves.windows(2).all(|o| o[0] <= o[1]), "{octaves:?}");
+        for (l, &n) in want.iter().enumerate() {
+            let got = octaves.iter().filter(|&&o| o == l as i32).count();
+            assert!(got > 0 && got <= n, "level {l}: {got} of {n}");
+        }
+        assert_eq!(k1.len(), d1.len());
+        // The same with four threads, and again with the buffers of a larger image left over.
+        let same = |(k, d): (Vec<Keypoint>, Vec<[u64; 4]>)| {
+            let bits = |k: &[Keypoint]| {
+                k.iter()
+                    .map(|k| (k.x.to_bits(), k.y.to_bits(), k.angle.to_bits(), k.octave))
+                    .collect::<Vec<_>>()
+            };
+            assert_eq!(bits(&k), bits(&k1));
+            assert_eq!(d, d1);
+        };
+        same(run(4, &mut OrbScratch::default()));
+        let big = vec![128u8; 640 * 480];
+        let (mut k, mut d) = (Vec::new(), Vec::new());
+        extract(&big, 640, 480, &p, &mut scratch, &mut k, &mut d).unwrap();
+        same(run(4, &mut scratch));
     }
 
     #[test]
