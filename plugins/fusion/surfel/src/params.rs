@@ -145,23 +145,16 @@ impl Params {
                 format!("must be a finite number >= 0, got {}", self.stable_weight),
             ));
         }
-        if !(self.data_points_per_node >= 0.0 && self.data_points_per_node.is_finite()) {
-            return Err(BuildError::param(
-                "data_points_per_node",
-                format!(
-                    "must be a finite number >= 0 (0: off), got {}",
-                    self.data_points_per_node
-                ),
-            ));
-        }
-        if !(self.solve_points_per_node >= 0.0 && self.solve_points_per_node.is_finite()) {
-            return Err(BuildError::param(
-                "solve_points_per_node",
-                format!(
-                    "must be a finite number >= 0 (0: off), got {}",
-                    self.solve_points_per_node
-                ),
-            ));
+        for (name, v) in [
+            ("data_points_per_node", self.data_points_per_node),
+            ("solve_points_per_node", self.solve_points_per_node),
+        ] {
+            if !(v >= 0.0 && v.is_finite()) {
+                return Err(BuildError::param(
+                    name,
+                    format!("must be a finite number >= 0 (0: off), got {v}"),
+                ));
+            }
         }
         if self.max_surfels == 0 {
             return Err(BuildError::param("max_surfels", "must be at least 1"));
