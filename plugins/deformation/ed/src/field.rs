@@ -159,6 +159,11 @@ impl DistanceField {
         Self::check_maps(vertices, normals, k)?;
         let (origin, dims) = Self::scan_box(vertices, normals, voxel, truncation, max_voxels)?;
         let q = ProjectiveField::new(origin, voxel, truncation, k, window);
+        // Most voxels of the box lie far in front of or behind every pixel of their block: the
+        // depth range of each block's valid pixels rules them out with one lookup (a valid pixel
+        // needs |c - q| <= 2 truncation, so |c_z - q_z| <= 2 truncation), the same values.
+        let range = q.block_depth_range(vertices, normals);
+        let reach = 2.0 * q.truncation * (1.0 + 1e-4) + 1e-4;
         let mut values = vec![f32::NAN; dims[0] * dims[1] * dims[2]];
         values
             .par_chunks_mut(dims[0])
@@ -166,7 +171,14 @@ impl DistanceField {
             .for_each(|(row, out)| {
                 let (y, z) = (row % dims[1], row / dims[1]);
                 for (x, v) in out.iter_mut().enumerate() {
-                    *v = q.value([x as u32, y as u32, z as u32], vertices, normals);
+                    let ijk = [x as u32, y as u32, z as u32];
+                    let Some((c, pixel)) = q.project(ijk) else {
+                        continue;
+                    };
+                    let (lo, hi) = range[pixel];
+                    if c[2] >= lo - reach && c[2] <= hi + reach {
+                        *v = q.value(ijk, vertices, normals);
+                    }
                 }
             });
         Ok(DistanceField {
@@ -282,6 +294,69 @@ impl ProjectiveField {
         }
     }
 
+    /// Voxel `ijk`'s centre and the pixel it projects onto (row-major index; nearest pixel), or
+    /// None where it lies behind the camera or outside the image (its value is then NaN).
+    #[inline]
+    pub fn project(&self, ijk: [u32; 3]) -> Option<([f32; 3], usize)> {
+        let c = [0, 1, 2].map(|a| self.origin[a] + ijk[a] as f32 * self.voxel);
+        if c[2] <= 0.0 {
+            return None;
+        }
+        let u = (self.k[0] * c[0] / c[2] + self.k[2] + 0.5).floor();
+        let v = (self.k[1] * c[1] / c[2] + self.k[3] + 0.5).floor();
+        let (w, h) = (self.size[0] as f32, self.size[1] as f32);
+        if !(u >= 0.0 && v >= 0.0 && u < w && v < h) {
+            return None;
+        }
+        Some((c, v as usize * self.size[0] as usize + u as usize))
+    }
+
+    /// Per pixel, the least and greatest depth (z) of the valid pixels (finite point and normal)
+    /// of the (2 `window` + 1)^2 block around it, (inf, -inf) where it has none: two separable
+    /// passes.
+    pub fn block_depth_range(
+        &self,
+        vertices: &[[f32; 3]],
+        normals: &[[f32; 3]],
+    ) -> Vec<(f32, f32)> {
+        let (w, h, r) = (
+            self.size[0] as usize,
+            self.size[1] as usize,
+            self.window as usize,
+        );
+        let none = (f32::INFINITY, f32::NEG_INFINITY);
+        let merge = |a: (f32, f32), b: (f32, f32)| (a.0.min(b.0), a.1.max(b.1));
+        let z: Vec<(f32, f32)> = vertices
+            .iter()
+            .zip(normals)
+            .map(|(q, n)| {
+                if q.iter().chain(n.iter()).all(|x| x.is_finite()) {
+                    (q[2], q[2])
+                } else {
+                    none
+                }
+            })
+            .collect();
+        let mut rows = vec![none; w * h];
+        rows.par_chunks_mut(w).enumerate().for_each(|(y, out)| {
+            let src = &z[y * w..(y + 1) * w];
+            for (x, o) in out.iter_mut().enumerate() {
+                *o = src[x.saturating_sub(r)..=(x + r).min(w - 1)]
+                    .iter()
+                    .fold(none, |a, &b| merge(a, b));
+            }
+        });
+        let mut out = vec![none; w * h];
+        out.par_chunks_mut(w).enumerate().for_each(|(y, o)| {
+            for yy in y.saturating_sub(r)..=(y + r).min(h - 1) {
+                for (a, &b) in o.iter_mut().zip(&rows[yy * w..(yy + 1) * w]) {
+                    *a = merge(*a, b);
+                }
+            }
+        });
+        out
+    }
+
     /// The value of voxel `ijk` (NaN unknown): the mean of n_i . (c - q_i) over the valid pixels
     /// i of the (2 window + 1)^2 block around c's projection (a pixel is valid with a finite point
     /// and normal, |n_i . (c - q_i)| <= truncation and |c - q_i| <= 2 truncation).
@@ -304,12 +379,11 @@ impl ProjectiveField {
             for x in (u - r).max(0)..=(u + r).min(w - 1) {
                 let i = (y * w + x) as usize;
                 let (q, n) = (vertices[i], normals[i]);
-                if !q.iter().chain(n.iter()).all(|x| x.is_finite()) {
-                    continue;
-                }
                 let d = [c[0] - q[0], c[1] - q[1], c[2] - q[2]];
                 let s = n[0] * d[0] + n[1] * d[1] + n[2] * d[2];
                 let r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+                // A pixel with a non-finite point or normal gives a NaN or infinite s or r2,
+                // which fails these tests: no separate check.
                 if s.abs() <= t && r2 <= 4.0 * t * t {
                     sum += s;
                     count += 1;
@@ -379,6 +453,87 @@ mod tests {
         let nan = vec![[f32::NAN; 3]; 80 * 60];
         let err = DistanceField::from_maps(&nan, &nan, &k, 0.5, 3.0, 0, 1000).unwrap_err();
         assert!(err.contains("no valid point"), "{err}");
+    }
+
+    #[test]
+    fn voxels_ruled_out_by_depth_range_are_those_with_no_valid_pixel() {
+        // A scan with steps, a slope and holes: the field built with the depth-range test equals
+        // every voxel's value computed on its own, to the bit.
+        let k = Intrinsics {
+            fx: 120.0,
+            fy: 120.0,
+            cx: 32.0,
+            cy: 24.0,
+            width: 64,
+            height: 48,
+        };
+        let depth: Vec<f32> = (0..64 * 48)
+            .map(|i| {
+                let (x, y) = (i % 64, i / 64);
+                if (x * 7 + y * 3) % 11 == 0 {
+                    f32::NAN
+                } else if x > 40 {
+                    45.0 + 0.2 * y as f32
+                } else {
+                    60.0 + 0.1 * x as f32 + if y > 30 { 6.0 } else { 0.0 }
+                }
+            })
+            .collect();
+        let (v, n) = crate::observe::scan_from_depth(&depth, &k, 20.0);
+        for window in [0, 2] {
+            let f = DistanceField::from_maps(&v, &n, &k, 0.7, 2.0, window, 10_000_000).unwrap();
+            let q = ProjectiveField::new(f.origin, f.voxel, f.truncation, &k, window);
+            let range = q.block_depth_range(&v, &n);
+            let (mut known, mut skipped) = (0, 0);
+            for z in 0..f.dims[2] {
+                for y in 0..f.dims[1] {
+                    for x in 0..f.dims[0] {
+                        let ijk = [x as u32, y as u32, z as u32];
+                        let want = q.value(ijk, &v, &n);
+                        let got = f.values[(z * f.dims[1] + y) * f.dims[0] + x];
+                        assert_eq!(got.to_bits(), want.to_bits(), "voxel {ijk:?}");
+                        if want.is_finite() {
+                            known += 1;
+                        } else if let Some((c, pixel)) = q.project(ijk) {
+                            let (lo, hi) = range[pixel];
+                            if c[2] < lo - 2.0 * f.truncation as f32 - 0.01
+                                || c[2] > hi + 2.0 * f.truncation as f32 + 0.01
+                            {
+                                skipped += 1;
+                            }
+                        }
+                    }
+                }
+            }
+            // Both kinds occur: the test rules voxels out, and keeps the ones near the scan.
+            assert!(
+                known > 1000 && skipped > 1000,
+                "known {known}, ruled out {skipped}"
+            );
+        }
+        // A pixel with a NaN or infinite point or normal counts for nothing: a 3x3 map whose
+        // only valid pixel is the centre, at z = 50 facing the camera.
+        let k3 = Intrinsics {
+            fx: 100.0,
+            fy: 100.0,
+            cx: 1.0,
+            cy: 1.0,
+            width: 3,
+            height: 3,
+        };
+        let bad = [f32::NAN, f32::INFINITY, f32::NEG_INFINITY];
+        let mut v3 = vec![[0.0, 0.0, 50.0]; 9];
+        let mut n3 = vec![[0.0, 0.0, -1.0]; 9];
+        for i in [0, 1, 2, 3, 5, 6, 7, 8] {
+            if i % 2 == 0 {
+                v3[i] = [bad[i % 3]; 3];
+            } else {
+                n3[i] = [0.0, bad[i % 3], bad[(i + 1) % 3]];
+            }
+        }
+        let q = ProjectiveField::new(Vector3::new(0.0, 0.0, 49.0), 1.0, 3.0, &k3, 1);
+        assert_eq!(q.value([0, 0, 0], &v3, &n3), 1.0);
+        assert_eq!(q.value([0, 0, 2], &v3, &n3), -1.0);
     }
 
     #[test]
