@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""ORB and Hamming matching against OpenCV, in the same run, single-threaded.
+"""ORB and Hamming matching against OpenCV, in the same run, single-threaded (misslam with
+RAYON_NUM_THREADS=1; its ORB levels run in parallel otherwise, shown beside as "2 threads").
 
     python3 -m venv .venv-bench && .venv-bench/bin/pip install opencv-python-headless scikit-image
     .venv-bench/bin/python benches/features_vs_opencv.py [--misslam target/debug/misslam]
@@ -52,7 +53,7 @@ def cv_match(da, db):
             and m[0].distance <= 64 and back.get(m[0].trainIdx) == m[0].queryIdx]
 
 
-def misslam(exe, a, b=None, n=1000, dist="quadtree", repeat=20, pattern="learned", retry=True):
+def misslam(exe, a, b=None, n=1000, dist="quadtree", repeat=20, pattern="learned", retry=True, threads=1):
     with tempfile.TemporaryDirectory() as d:
         out = os.path.join(d, "r.json")
         cmd = [exe, "bench", "features", "--image", a, "--n-features", str(n), "--distribution", dist,
@@ -61,7 +62,8 @@ def misslam(exe, a, b=None, n=1000, dist="quadtree", repeat=20, pattern="learned
             cmd += ["--min-fast-threshold", "0"]
         if b:
             cmd += ["--image2", b]
-        subprocess.run(cmd, check=True, capture_output=True)
+        subprocess.run(cmd, check=True, capture_output=True,
+                       env=dict(os.environ, RAYON_NUM_THREADS=str(threads)))
         return json.load(open(out))
 
 
@@ -97,17 +99,19 @@ def main():
             cv_ms = float(np.median(ts))
             ours = {dist: misslam(args.misslam, pa, dist=dist) for dist in ["quadtree", "none"]}
             ours["rule"] = misslam(args.misslam, pa, dist="none", retry=False)
+            ours["2t"] = misslam(args.misslam, pa, threads=2)
             row = dict(image=name, opencv_orb_ms=cv_ms, opencv_keypoints=len(ka),
                        misslam_orb_ms=ours["quadtree"]["orb_ms"], misslam_keypoints=ours["quadtree"]["keypoints"],
                        misslam_orb_none_ms=ours["none"]["orb_ms"],
                        misslam_orb_opencv_rule_ms=ours["rule"]["orb_ms"],
                        misslam_opencv_rule_keypoints=ours["rule"]["keypoints"],
+                       misslam_orb_2_threads_ms=ours["2t"]["orb_ms"],
                        ratio=cv_ms / ours["quadtree"]["orb_ms"])
             rows.append(row)
             print(f"ORB 1000 kp {name}: OpenCV {cv_ms:.2f} ms ({len(ka)} kp), misslam {row['misslam_orb_ms']:.2f} ms "
                   f"({row['misslam_keypoints']} kp; none: {row['misslam_orb_none_ms']:.2f}; OpenCV's rule: "
                   f"{row['misslam_orb_opencv_rule_ms']:.2f} ms, {row['misslam_opencv_rule_keypoints']} kp) "
-                  f"-> x{row['ratio']:.2f}")
+                  f"-> x{row['ratio']:.2f}; misslam on 2 threads {row['misslam_orb_2_threads_ms']:.2f} ms")
             # 2000 x 2000 Hamming kNN: descriptors of this image against those of a warped copy.
             H = homographies(640, 480)[0][1]
             wb = cv2.warpPerspective(img, H, (640, 480))
