@@ -36,12 +36,15 @@ pub struct Params {
     /// Where the visible surfels average more than this many per node they bind, the solve
     /// takes one in ceil(average / this) of them (spread by a hash of their index; the data
     /// weight is then normalised on the ones taken, `data_points_per_node`); fusion still meets
-    /// every depth sample. 0 turns it off. The main graph at 320x240 (about 47) is not thinned;
-    /// at 640x480 with f = 700 px (about 130) the solve takes one in 2 or 3: over 150 frames
-    /// recon.mean_mm 0.0840 against 0.0836 with every surfel, material drift 0.358 against
-    /// 0.359 mm, fusion 8.9 / 9.4 against 11.8 / 11.2 ms a frame on 2 cores (48: 0.0831 mm,
-    /// 7.6 ms; 16: 0.0899 mm); `stride = 1` at 320x240 (about 660) one in 11, 0.185 against
-    /// 0.184 mm at half the fusion time. `fusion.solve_points_share` reports the share taken.
+    /// every depth sample. 0 turns it off. At 640x480 with f = 700 px (about 130 a node) the
+    /// solve takes one in 3: over 150 frames (2 cores, one script) fusion 7.35 / 7.52 ms a frame
+    /// against 9.48 / 9.51 with every surfel (64, one in 2: 9.08 / 8.06), recon.mean_mm 0.0831
+    /// against 0.0836 (64: 0.0840), material drift 0.360 against 0.359 mm; 32 and 16 gave 0.0853
+    /// and 0.0899 mm. The main graph at 320x240 (about 47) is thinned on some frames (the
+    /// README's command takes 94 % of its visible surfels): seeds 7, 1 and 2 over 150 frames
+    /// 0.1577 against 0.1575 mm, drift 0.480 against 0.483. `stride = 1` at 320x240 (about 660)
+    /// gets one in 14, 0.185 against 0.184 mm after 20 frames (measured at 64, one in 11) at half
+    /// the fusion time. `fusion.solve_points_share` reports the share taken.
     pub solve_points_per_node: f64,
     /// Batch or decoupled.
     pub solver_kind: SolverKind,
@@ -90,7 +93,7 @@ impl Default for Params {
                 ..SolverParams::default()
             },
             data_points_per_node: 32.0,
-            solve_points_per_node: 64.0,
+            solve_points_per_node: 48.0,
             solver_kind: SolverKind::Decoupled,
             decoupled: DecoupledParams::default(),
             stride: 4,
