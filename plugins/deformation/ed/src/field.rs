@@ -172,10 +172,10 @@ impl DistanceField {
                 let (y, z) = (row % dims[1], row / dims[1]);
                 for (x, v) in out.iter_mut().enumerate() {
                     let ijk = [x as u32, y as u32, z as u32];
-                    let Some((c, pixel)) = q.project(ijk) else {
+                    let Some((c, [pu, pv])) = q.project(ijk) else {
                         continue;
                     };
-                    let (lo, hi) = range[pixel];
+                    let (lo, hi) = range[pv * k.width as usize + pu];
                     if c[2] >= lo - reach && c[2] <= hi + reach {
                         *v = q.value(ijk, vertices, normals);
                     }
@@ -294,10 +294,10 @@ impl ProjectiveField {
         }
     }
 
-    /// Voxel `ijk`'s centre and the pixel it projects onto (row-major index; nearest pixel), or
-    /// None where it lies behind the camera or outside the image (its value is then NaN).
+    /// Voxel `ijk`'s centre and the pixel (column, row) it projects onto (the nearest), or None
+    /// where it lies behind the camera or outside the image (its value is then NaN).
     #[inline]
-    pub fn project(&self, ijk: [u32; 3]) -> Option<([f32; 3], usize)> {
+    pub fn project(&self, ijk: [u32; 3]) -> Option<([f32; 3], [usize; 2])> {
         let c = [0, 1, 2].map(|a| self.origin[a] + ijk[a] as f32 * self.voxel);
         if c[2] <= 0.0 {
             return None;
@@ -308,7 +308,7 @@ impl ProjectiveField {
         if !(u >= 0.0 && v >= 0.0 && u < w && v < h) {
             return None;
         }
-        Some((c, v as usize * self.size[0] as usize + u as usize))
+        Some((c, [u as usize, v as usize]))
     }
 
     /// Per pixel, the least and greatest depth (z) of the valid pixels (finite point and normal)
@@ -362,16 +362,10 @@ impl ProjectiveField {
     /// and normal, |n_i . (c - q_i)| <= truncation and |c - q_i| <= 2 truncation).
     #[inline]
     pub fn value(&self, ijk: [u32; 3], vertices: &[[f32; 3]], normals: &[[f32; 3]]) -> f32 {
-        let c = [0, 1, 2].map(|a| self.origin[a] + ijk[a] as f32 * self.voxel);
-        if c[2] <= 0.0 {
+        let Some((c, [u, v])) = self.project(ijk) else {
             return f32::NAN;
-        }
-        let u = (self.k[0] * c[0] / c[2] + self.k[2] + 0.5).floor();
-        let v = (self.k[1] * c[1] / c[2] + self.k[3] + 0.5).floor();
+        };
         let (w, h) = (self.size[0] as i64, self.size[1] as i64);
-        if !(u >= 0.0 && v >= 0.0 && u < w as f32 && v < h as f32) {
-            return f32::NAN;
-        }
         let (u, v, r) = (u as i64, v as i64, self.window as i64);
         let t = self.truncation;
         let (mut sum, mut count) = (0f32, 0u32);
@@ -494,8 +488,8 @@ mod tests {
                         assert_eq!(got.to_bits(), want.to_bits(), "voxel {ijk:?}");
                         if want.is_finite() {
                             known += 1;
-                        } else if let Some((c, pixel)) = q.project(ijk) {
-                            let (lo, hi) = range[pixel];
+                        } else if let Some((c, [u, v])) = q.project(ijk) {
+                            let (lo, hi) = range[v * 64 + u];
                             if c[2] < lo - 2.0 * f.truncation as f32 - 0.01
                                 || c[2] > hi + 2.0 * f.truncation as f32 + 0.01
                             {
