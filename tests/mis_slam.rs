@@ -224,8 +224,8 @@ fn a_wide_view_of_noisy_depth_keeps_the_model_together() {
 fn a_sample_per_pixel_is_weighed_and_thinned_as_the_default_stride_is() {
     // `stride = 1` gives about 660 visible surfels per node, 14 times the default 4. The solve
     // takes one in ceil(660 / 48) of them (`solve_points_per_node`) and fits as with all of them
-    // (20 frames, one in 11 then: recon 0.185 against 0.184 mm, drift 0.315 against 0.314;
-    // fusion 24 against 46 ms a frame on 2 cores).
+    // (20 frames: recon 0.1853 against 0.1844 mm, drift 0.319 against 0.314; fusion 17 against
+    // 34 ms a frame on 2 cores).
     let dense = ["graph.frames.count=20", "fusion.stride=1"];
     let e = run(&dense, "mis_slam_stride1");
     let (mean, rms, drift) = (e["recon.mean_mm"], e["recon.rms_mm"], e["recon.drift_mm"]);
