@@ -52,14 +52,17 @@ params = { prefix = "seen" }
 
 /// Runs [`EXACT_GRAPH`] with overrides.
 fn exact(sets: &[&str], name: &str) -> BTreeMap<String, f64> {
+    exact_report(sets, name).metrics.eval
+}
+
+/// The same, the whole report.
+fn exact_report(sets: &[&str], name: &str) -> misslam::framework::RunReport {
     let dir = common::tmp_dir(name);
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("exact.toml");
     std::fs::write(&path, EXACT_GRAPH).unwrap();
     let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
     common::run_graph_file(path.to_str().unwrap(), &sets, &dir.join("out"))
-        .metrics
-        .eval
 }
 
 #[test]
@@ -143,10 +146,32 @@ fn the_gpu_distance_field_matches_the_cpu_reference() {
 #[test]
 fn the_template_follows_exact_depth_with_either_data_term() {
     for dt in ["dff", "projective"] {
-        let e = exact(
+        let report = exact_report(
             &[&format!("fusion.data_term={dt}")],
             &format!("template_exact_{dt}"),
         );
+        // The node's stages are timed: the template's set-up on the first frame, every later
+        // frame's selection, correspondences, solve (and its parts) and output; the field with
+        // DFF only.
+        let t = &report.metrics.timing_ms;
+        let frames = |stage: &str| t.get(&format!("fusion.{stage}")).map_or(0, |s| s.frames);
+        assert_eq!(frames("init"), 1);
+        for stage in [
+            "scan",
+            "select",
+            "corr",
+            "solve",
+            "solve.associate",
+            "solve.assemble",
+            "solve.factor",
+            "solve.prepare",
+            "solve.level2",
+            "output",
+        ] {
+            assert_eq!(frames(stage), 10, "{dt}: fusion.{stage}");
+        }
+        assert_eq!(frames("field"), if dt == "dff" { 10 } else { 0 }, "{dt}");
+        let e = &report.metrics.eval;
         let (seen, all) = (e["seen.mean_mm"], e["recon.mean_mm"]);
         let drift = e["recon.drift_mm"];
         eprintln!(

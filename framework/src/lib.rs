@@ -20,6 +20,7 @@ pub use gpu::{Device, GpuContext, GpuError, GpuProvider};
 pub use graph::{Graph, GraphError};
 pub use node::{
     Flow, FrameInfo, Inputs, Node, NodeContext, NodeError, NodeResult, Outputs, PortSpec,
+    StageClock,
 };
 pub use payload::*;
 pub use registry::{BuildContext, BuildError, Plugin, PluginInfo, Registry, TypedPlugin};

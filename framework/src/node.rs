@@ -143,6 +143,46 @@ impl NodeContext<'_> {
     }
 }
 
+/// Times a node's stages within one call, for [`NodeContext::report_stage_ms`]: each
+/// [`StageClock::lap`] ends the stage running since the last lap (or the start); stages timed
+/// elsewhere (a solver's own parts) are pushed with [`StageClock::push`].
+#[derive(Debug)]
+pub struct StageClock {
+    /// The stages so far, in order, ms.
+    pub times: Vec<(&'static str, f64)>,
+    lap: std::time::Instant,
+}
+
+impl StageClock {
+    /// Starts timing the first stage now.
+    pub fn start() -> Self {
+        StageClock {
+            times: Vec::new(),
+            lap: std::time::Instant::now(),
+        }
+    }
+
+    /// Ends the stage running since the last lap (or the start) as `name`.
+    pub fn lap(&mut self, name: &'static str) {
+        let now = std::time::Instant::now();
+        self.times
+            .push((name, (now - self.lap).as_secs_f64() * 1e3));
+        self.lap = now;
+    }
+
+    /// Adds a stage timed elsewhere (it does not end the running one).
+    pub fn push(&mut self, name: &'static str, ms: f64) {
+        self.times.push((name, ms));
+    }
+
+    /// Hands every stage to `ctx` (only the stages this call ran).
+    pub fn report(self, ctx: &mut NodeContext) {
+        for (stage, ms) in self.times {
+            ctx.report_stage_ms(stage, ms);
+        }
+    }
+}
+
 /// A node of the graph. `start` and `finish` default to doing nothing.
 pub trait Node: Send {
     /// Called once before the first frame.

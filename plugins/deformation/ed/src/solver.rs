@@ -59,6 +59,19 @@ pub struct Info {
     pub ms_total: f64,
 }
 
+impl Info {
+    /// The solve's parts as stage names and ms, as the fusion nodes report them under their
+    /// `timing_ms` (`solve.associate`, `solve.assemble`, `solve.factor`, `solve.prepare`).
+    pub fn stages(&self) -> [(&'static str, f64); 4] {
+        [
+            ("solve.associate", self.ms_associate),
+            ("solve.assemble", self.ms_assemble),
+            ("solve.factor", self.ms_factor),
+            ("solve.prepare", self.ms_prepare),
+        ]
+    }
+}
+
 /// What an assembly writes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Assembly {

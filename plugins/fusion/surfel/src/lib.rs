@@ -37,7 +37,7 @@ use misslam_framework::nalgebra::{Isometry3, Point3, Vector3};
 use misslam_framework::{
     BuildContext, BuildError, DepthMap, Features, Flow, FrameInfo, Image, Inputs, Metrics, Node,
     NodeContext, NodeError, NodeResult, NormalMap, Outputs, PortSpec, PortType, Pose, Registry,
-    StereoFrame, SurfelModel, TrackingState, TypedPlugin, VertexMap,
+    StageClock, StereoFrame, SurfelModel, TrackingState, TypedPlugin, VertexMap,
 };
 use rayon::prelude::*;
 
@@ -130,29 +130,6 @@ enum Sample {
     },
 }
 
-struct Stages {
-    times: Vec<(&'static str, f64)>,
-    lap: std::time::Instant,
-}
-
-impl Stages {
-    /// Starts timing the first stage now.
-    fn start() -> Self {
-        Stages {
-            times: Vec::new(),
-            lap: std::time::Instant::now(),
-        }
-    }
-
-    /// Ends the stage running since the last lap (or the start) as `name`.
-    fn lap(&mut self, name: &'static str) {
-        let now = std::time::Instant::now();
-        self.times
-            .push((name, (now - self.lap).as_secs_f64() * 1e3));
-        self.lap = now;
-    }
-}
-
 /// The node.
 pub struct SurfelNode {
     p: Params,
@@ -203,7 +180,7 @@ impl SurfelNode {
         features: Option<&Features>,
         maps: Option<(&VertexMap, &NormalMap)>,
         outputs: &mut Outputs,
-        st: &mut Stages,
+        st: &mut StageClock,
     ) -> NodeResult<Flow> {
         let features = features.filter(|_| self.p.correspondences.enabled);
         let (w, h) = (depth.map.width as usize, depth.map.height as usize);
@@ -364,7 +341,7 @@ impl SurfelNode {
                 correspondences: &corrs,
                 pose_prior: pose,
             };
-            st.times.push(("select.corr", ms_corr));
+            st.push("select.corr", ms_corr);
             st.lap("select");
             let (info, decoupled) = self
                 .engine
@@ -398,14 +375,9 @@ impl SurfelNode {
                 }
             }
             self.collapsing = collapsed > 0;
-            st.times.extend([
-                ("solve.associate", info.ms_associate),
-                ("solve.assemble", info.ms_assemble),
-                ("solve.factor", info.ms_factor),
-                ("solve.prepare", info.ms_prepare),
-            ]);
+            st.times.extend(info.stages());
             if let Some(d) = decoupled {
-                st.times.push(("solve.level2", d.level2.ms_total));
+                st.push("solve.level2", d.level2.ms_total);
             }
             metrics
                 .values
@@ -760,7 +732,7 @@ impl Node for SurfelNode {
             }
         };
         let left = pair.map(|p| p.left.as_ref());
-        let mut st = Stages::start();
+        let mut st = StageClock::start();
         let flow = self.frame(
             frame,
             depth,
@@ -772,9 +744,7 @@ impl Node for SurfelNode {
             &mut st,
         );
         // The first frame and lost frames have no solve: only the stages they ran are reported.
-        for (stage, ms) in st.times {
-            ctx.report_stage_ms(stage, ms);
-        }
+        st.report(ctx);
         flow
     }
 }

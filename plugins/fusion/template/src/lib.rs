@@ -36,7 +36,7 @@ use misslam_framework::nalgebra::{Isometry3, Point3, Vector3};
 use misslam_framework::{
     BuildContext, BuildError, DepthMap, Features, Flow, FrameInfo, GpuContext, Image, Inputs, Mesh,
     Metrics, Node, NodeContext, NodeError, NodeResult, Outputs, PointCloud, PortSpec, PortType,
-    Pose, Registry, StereoFrame, TrackingState, TypedPlugin,
+    Pose, Registry, StageClock, StereoFrame, TrackingState, TypedPlugin,
 };
 use misslam_fusion_surfel::corr;
 pub use params::{AlignMode, AlignParams, DataTerm, FieldParams, Params};
@@ -281,6 +281,7 @@ impl TemplateNode {
         frame: FrameInfo,
         inputs: &Inputs,
         outputs: &mut Outputs,
+        st: &mut StageClock,
     ) -> NodeResult<Flow> {
         let depth = inputs.get::<DepthMap>("depth")?;
         let k = intrinsics(depth);
@@ -310,6 +311,7 @@ impl TemplateNode {
             &mut self.vertices,
             &mut self.scan_normals,
         );
+        st.lap("scan");
         let mut metrics = Metrics::default();
         if self.model.is_none() {
             let template = match (&self.file_template, &self.p.template_from_scan) {
@@ -338,6 +340,7 @@ impl TemplateNode {
                 .init_model(&template, &pose, &k, &mut metrics)
                 .map_err(|e| NodeError::msg(format!("frame {}: {e}", frame.index)))?;
             self.model = Some(m);
+            st.lap("init");
         }
         let Some(model) = self.model.as_mut() else {
             return Err(NodeError::msg("no model"));
@@ -362,6 +365,7 @@ impl TemplateNode {
                 self.p.visible_distance_mm,
                 self.p.visible_angle_deg,
             );
+            st.lap("select");
             let field = match self.p.data_term {
                 DataTerm::Dff => {
                     let t = Instant::now();
@@ -400,6 +404,9 @@ impl TemplateNode {
                 }
                 DataTerm::Projective => None,
             };
+            if field.is_some() {
+                st.lap("field");
+            }
             self.subset
                 .gather(&visible, &model.points, &model.normals, &model.bindings);
             let corrs = self
@@ -420,6 +427,7 @@ impl TemplateNode {
             metrics
                 .values
                 .insert("template.anchors".into(), self.corr.anchors() as f64);
+            st.lap("corr");
             let problem = Problem {
                 model: self.subset.view(),
                 scan: match self.p.data_term {
@@ -454,6 +462,11 @@ impl TemplateNode {
                     &self.p.decoupled,
                 )
                 .map_err(NodeError::msg)?;
+            st.lap("solve");
+            st.times.extend(info.stages());
+            if let Some(d) = &split {
+                st.push("solve.level2", d.level2.ms_total);
+            }
             self.solved = true;
             for (key, v) in [
                 ("template.iterations", info.iterations as f64),
@@ -555,6 +568,7 @@ impl TemplateNode {
             },
         )?;
         outputs.put("info", metrics)?;
+        st.lap("output");
         Ok(Flow::Continue)
     }
 }
@@ -584,12 +598,17 @@ fn zero_level(f: &DistanceField, world_from_camera: &Isometry3<f64>) -> PointClo
 impl Node for TemplateNode {
     fn process(
         &mut self,
-        _: &mut NodeContext,
+        ctx: &mut NodeContext,
         frame: FrameInfo,
         inputs: &Inputs,
         outputs: &mut Outputs,
     ) -> NodeResult<Flow> {
-        self.frame(frame, inputs, outputs)
+        // Its stages under `timing_ms."<id>.<stage>"`: scan, init (the first frame), select,
+        // field (DFF), corr, solve (and its parts), output; a lost frame runs no solve.
+        let mut st = StageClock::start();
+        let flow = self.frame(frame, inputs, outputs, &mut st);
+        st.report(ctx);
+        flow
     }
 
     fn finish(&mut self, ctx: &mut NodeContext) -> NodeResult<()> {
