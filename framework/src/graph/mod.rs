@@ -650,6 +650,13 @@ fn apply_graph_override(file: &Path, g: &mut GraphSection, o: &Override) -> Resu
             .map(|i| i as u64)
             .ok_or_else(|| err(format!("`graph.{key}` takes a non-negative integer")))
     };
+    // A u32 of at least `min`, else the error `what` names.
+    let want_u32 = |min: u32, what: &str| {
+        v.as_integer()
+            .and_then(|n| u32::try_from(n).ok())
+            .filter(|&n| n >= min)
+            .ok_or_else(|| err(format!("`graph.{key}` takes {what}")))
+    };
     match key.as_str() {
         "seed" => g.seed = Some(want_int()?),
         "frames.start" => g.frames.get_or_insert_with(FrameRange::default).start = want_int()?,
@@ -658,26 +665,14 @@ fn apply_graph_override(file: &Path, g: &mut GraphSection, o: &Override) -> Resu
         "out" => g.out = Some(v.as_str().ok_or_else(|| err("`graph.out` takes a path".into()))?.to_owned()),
         "parallel" => g.parallel = Some(v.as_bool().ok_or_else(|| err("`graph.parallel` takes true or false".into()))?),
         "pipeline" => {
-            let n = v
-                .as_integer()
-                .and_then(|n| u32::try_from(n).ok())
-                .filter(|&n| n >= 1)
-                .ok_or_else(|| err("`graph.pipeline` takes the number of frames in the graph at once, at least 1".into()))?;
+            let n = want_u32(1, "the number of frames in the graph at once, at least 1")?;
             g.pipeline = Some(Spanned::new(0..0, n));
         }
         "level_threads" => {
-            let n = v
-                .as_integer()
-                .and_then(|n| u32::try_from(n).ok())
-                .ok_or_else(|| err("`graph.level_threads` takes a number of threads (0: half the cores)".into()))?;
-            g.level_threads = Some(n);
+            g.level_threads = Some(want_u32(0, "a number of threads (0: half the cores)")?);
         }
         "log_every" => {
-            let n = v
-                .as_integer()
-                .and_then(|n| u32::try_from(n).ok())
-                .filter(|&n| n >= 1)
-                .ok_or_else(|| err("`graph.log_every` takes a number of frames, at least 1".into()))?;
+            let n = want_u32(1, "a number of frames, at least 1")?;
             g.log_every = Some(Spanned::new(0..0, n));
         }
         "on_error" => {
