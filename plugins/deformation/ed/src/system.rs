@@ -18,14 +18,24 @@
 //! fill). The symbolic factorisation is reused for as long as the set of solved nodes, the
 //! eliminated nodes and the block pattern stay the same (across iterations, and across frames on a
 //! static graph).
+//!
+//! **Symbolic factorisation from the blocks.** The reduced system's diagonal blocks are dense and
+//! its couplings whole blocks, so its elimination tree and column counts follow from the block
+//! pattern (a few hundred blocks) instead of the scalar one (tens of thousands of entries, where
+//! faer's analysis took over half of a new pattern's layout): [`block_etree`] computes them, and
+//! faer's supernodal analysis takes them. The numeric factorisation reads the lower triangle,
+//! copied into a layout made once per pattern (faer would transpose the upper one at every
+//! factorisation).
 
 use faer::dyn_stack::{MemBuffer, MemStack};
-use faer::sparse::linalg::cholesky::{
-    factorize_symbolic_cholesky, CholeskySymbolicParams, LltRef, SymbolicCholesky,
-    SymmetricOrdering,
+use faer::sparse::linalg::cholesky::simplicial::EliminationTreeRef;
+use faer::sparse::linalg::cholesky::supernodal::{
+    factorize_supernodal_numeric_llt, factorize_supernodal_numeric_llt_scratch,
+    factorize_supernodal_symbolic_cholesky, factorize_supernodal_symbolic_cholesky_scratch,
+    SupernodalLltRef, SymbolicSupernodalCholesky,
 };
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
-use faer::{Par, Side};
+use faer::Par;
 
 use crate::schur::{sym12, Elimination, Layout, KEEP_FULL, KEEP_T};
 
@@ -154,9 +164,17 @@ pub struct BlockSystem {
     row_idx: Vec<usize>,
     values: Vec<f64>,
     diag_pos: Vec<usize>,
-    symbolic: Option<SymbolicCholesky<usize>>,
+    /// The lower triangle of the reduced matrix (what the supernodal factorisation reads), and
+    /// where each upper entry of `values` goes in it.
+    lcol_ptr: Vec<usize>,
+    lrow_idx: Vec<usize>,
+    lvalues: Vec<f64>,
+    to_lower: Vec<u32>,
+    symbolic: Option<SymbolicSupernodalCholesky<usize>>,
     l_values: Vec<f64>,
     scratch: MemBuffer,
+    /// Bytes `scratch` holds (as [`faer::dyn_stack::StackReq::unaligned_bytes_required`]).
+    scratch_bytes: usize,
     /// How many symbolic factorisations were computed (the reuse is tested through this).
     pub symbolic_builds: usize,
     /// Whether `l_values` and the elimination hold a numeric factorisation of the current
@@ -186,9 +204,14 @@ impl Default for BlockSystem {
             row_idx: Vec::new(),
             values: Vec::new(),
             diag_pos: Vec::new(),
+            lcol_ptr: Vec::new(),
+            lrow_idx: Vec::new(),
+            lvalues: Vec::new(),
+            to_lower: Vec::new(),
             symbolic: None,
             l_values: Vec::new(),
             scratch: MemBuffer::new(faer::dyn_stack::StackReq::EMPTY),
+            scratch_bytes: 0,
             symbolic_builds: 0,
             factored: false,
         }
@@ -229,6 +252,9 @@ impl BlockSystem {
     }
 
     fn build_pattern(&mut self, n_nodes: usize, key: PatternKey) -> Result<(), String> {
+        // The old pattern's factorisation no longer holds once its buffers are taken below: a
+        // failure on the way leaves the system unprepared (`solve` then says so).
+        self.symbolic = None;
         let nf = key.free.len();
         let mut local = vec![u32::MAX; n_nodes];
         for (i, &j) in key.free.iter().enumerate() {
@@ -414,49 +440,135 @@ impl BlockSystem {
                 col_ptr.push(row_idx.len());
             }
         }
-        let symbolic = if n > 0 {
-            let a = SymbolicSparseColMatRef::new_checked(n, n, &col_ptr, None, &row_idx);
-            Some(
-                factorize_symbolic_cholesky(
-                    a,
-                    Side::Upper,
-                    SymmetricOrdering::Identity,
-                    CholeskySymbolicParams::default(),
-                )
-                .map_err(|e| format!("symbolic Cholesky failed: {e:?}"))?,
-            )
-        } else {
-            None
-        };
-        if let Some(s) = &symbolic {
-            tracing::debug!(
-                "ED symbolic: n {n}, nnz(A upper) {}, nnz(L) {}, supernodal {}",
-                row_idx.len(),
-                s.len_val(),
-                matches!(
-                    s.raw(),
-                    faer::sparse::linalg::cholesky::SymbolicCholeskyRaw::Supernodal(_)
-                )
-            );
-            self.l_values = vec![0.0; s.len_val()];
-            let req = s
-                .factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default())
-                .or(s.solve_in_place_scratch::<f64>(1, Par::Seq));
+        // The lower triangle's layout, from the blocks (sequential writes; a transposition of
+        // the scalar pattern scatters them): lower column r of block bi holds the rest of bi's
+        // diagonal block, then each block bj > bi coupled to bi (`lrows[bi]`, ascending), then
+        // the pose. `to_lower` maps each upper entry, in the upper layout's order, to its place.
+        // (Buffers reused from the pattern before: every entry is written.)
+        let nnz = row_idx.len();
+        let mut lrows: Vec<Vec<u32>> = vec![Vec::new(); nf];
+        for bj in 0..nf {
+            for &bi in &rrows[rcol_start[bj]..rcol_start[bj + 1] - 1] {
+                lrows[bi as usize].push(bj as u32);
+            }
+        }
+        let mut lcol_ptr = std::mem::take(&mut self.lcol_ptr);
+        let mut lrow_idx = std::mem::take(&mut self.lrow_idx);
+        lcol_ptr.clear();
+        lrow_idx.clear();
+        lcol_ptr.push(0);
+        for bi in 0..nf {
+            for kr in 0..size(bi) {
+                lrow_idx.extend(koff[bi] + kr..koff[bi] + size(bi));
+                for &bj in &lrows[bi] {
+                    let o = koff[bj as usize];
+                    lrow_idx.extend(o..o + size(bj as usize));
+                }
+                if pose {
+                    lrow_idx.extend(nk..nk + 6);
+                }
+                lcol_ptr.push(lrow_idx.len());
+            }
+        }
+        if pose {
+            for pc in 0..6 {
+                lrow_idx.extend(nk + pc..nk + 6);
+                lcol_ptr.push(lrow_idx.len());
+            }
+        }
+        if lrow_idx.len() != nnz {
+            return Err(format!(
+                "the lower triangle has {} entries, the upper {nnz}",
+                lrow_idx.len()
+            ));
+        }
+        let mut to_lower = std::mem::take(&mut self.to_lower);
+        to_lower.clear();
+        // Per block bi: where the next block column's rows start in bi's lower columns.
+        let mut run = vec![0usize; nf];
+        for bj in 0..nf {
+            let list = &rrows[rcol_start[bj]..rcol_start[bj + 1]];
+            let (oj, sj) = (koff[bj], size(bj));
+            for cc in 0..sj {
+                for &bi in &list[..list.len() - 1] {
+                    let (oi, si) = (koff[bi as usize], size(bi as usize));
+                    let at = run[bi as usize] + cc;
+                    to_lower.extend((0..si).map(|kr| (lcol_ptr[oi + kr] + si - kr + at) as u32));
+                }
+                to_lower.extend((0..=cc).map(|kr| (lcol_ptr[oj + kr] + cc - kr) as u32));
+            }
+            for &bi in &list[..list.len() - 1] {
+                run[bi as usize] += sj;
+            }
+        }
+        if pose {
+            for pc in 0..6 {
+                to_lower.extend((0..nk).map(|r| (lcol_ptr[r + 1] - 6 + pc) as u32));
+                to_lower.extend((0..=pc).map(|r| (lcol_ptr[nk + r] + pc - r) as u32));
+            }
+        }
+        debug_assert_eq!(to_lower.len(), nnz);
+        // Elimination tree and column counts from the reduced block pattern (plus the pose
+        // block, coupled to every node), then faer's supernodal structure.
+        let mut bsize: Vec<usize> = (0..nf).map(size).collect();
+        let mut boff: Vec<usize> = koff[..nf].to_vec();
+        let mut bcols: Vec<&[u32]> = (0..nf)
+            .map(|bj| &rrows[rcol_start[bj]..rcol_start[bj + 1]])
+            .collect();
+        let all: Vec<u32> = (0..=nf as u32).collect();
+        if pose {
+            bsize.push(6);
+            boff.push(nk);
+            bcols.push(&all);
+        }
+        let (etree, col_counts) = block_etree(&bcols, &bsize, &boff);
+        let a = SymbolicSparseColMatRef::new_checked(n, n, &col_ptr, None, &row_idx);
+        // SAFETY: `block_etree` gives the elimination tree `prefactorize_symbolic_cholesky` computes
+        // for this pattern (the diagonal blocks dense, each coupling a whole block; checked against
+        // it in this module's tests), which is all `from_inner` asks.
+        let et = unsafe { EliminationTreeRef::<usize>::from_inner(&etree) };
+        let mut mem =
+            MemBuffer::try_new(factorize_supernodal_symbolic_cholesky_scratch::<usize>(n))
+                .map_err(|_| "out of memory for the symbolic Cholesky")?;
+        let symbolic = factorize_supernodal_symbolic_cholesky(
+            a,
+            et,
+            &col_counts,
+            MemStack::new(&mut mem),
+            Default::default(),
+        )
+        .map_err(|e| format!("symbolic Cholesky failed: {e:?}"))?;
+        tracing::debug!(
+            "ED symbolic: n {n}, nnz(A upper) {}, nnz(L) {}, supernodes {}",
+            row_idx.len(),
+            symbolic.len_val(),
+            symbolic.n_supernodes()
+        );
+        // Written whole by each factorisation.
+        self.l_values.resize(symbolic.len_val(), 0.0);
+        let req = factorize_supernodal_numeric_llt_scratch::<usize, f64>(
+            &symbolic,
+            Par::Seq,
+            Default::default(),
+        )
+        .or(symbolic.solve_in_place_scratch::<f64>(1, Par::Seq));
+        // Reused while large enough (a new pattern is laid out on most frames of a sweep).
+        if req.unaligned_bytes_required() > self.scratch_bytes {
             self.scratch =
                 MemBuffer::try_new(req).map_err(|_| "out of memory for the Cholesky workspace")?;
+            self.scratch_bytes = req.unaligned_bytes_required();
         }
         self.symbolic_builds += 1;
         self.nb = nf;
         self.slot = slot;
-        self.blocks = vec![[0.0; 144]; rows.len()];
-        self.pose_cross = if pose {
-            vec![[0.0; 72]; nf]
-        } else {
-            Vec::new()
-        };
-        self.grad = vec![0.0; 12 * nf + if pose { 6 } else { 0 }];
-        self.values = vec![0.0; row_idx.len()];
-        self.rhs = vec![0.0; n];
+        // The buffers keep their allocations (and stale values) from pattern to pattern:
+        // `prepare` zeroes the blocks, the pose parts and the gradient before each assembly,
+        // `solve` the values, and the right-hand side and the lower triangle are written whole.
+        self.blocks.resize(rows.len(), [0.0; 144]);
+        self.pose_cross.resize(if pose { nf } else { 0 }, [0.0; 72]);
+        self.grad.resize(12 * nf + if pose { 6 } else { 0 }, 0.0);
+        self.values.resize(row_idx.len(), 0.0);
+        self.rhs.resize(n, 0.0);
         self.elim_slot = elim_slot;
         self.koff = koff;
         self.blk_rowoff = blk_rowoff;
@@ -480,17 +592,12 @@ impl BlockSystem {
         self.col_ptr = col_ptr;
         self.row_idx = row_idx;
         self.diag_pos = diag_pos;
-        // An empty system still counts as prepared.
-        self.symbolic = symbolic.or_else(|| {
-            let a = SymbolicSparseColMatRef::new_checked(0, 0, &[0usize][..], None, &[][..]);
-            factorize_symbolic_cholesky(
-                a,
-                Side::Upper,
-                SymmetricOrdering::Identity,
-                CholeskySymbolicParams::default(),
-            )
-            .ok()
-        });
+        self.lvalues.resize(self.row_idx.len(), 0.0);
+        self.lcol_ptr = lcol_ptr;
+        self.lrow_idx = lrow_idx;
+        self.to_lower = to_lower;
+        // An empty system counts as prepared too.
+        self.symbolic = Some(symbolic);
         self.key = key;
         Ok(())
     }
@@ -692,22 +799,24 @@ impl BlockSystem {
             .as_ref()
             .ok_or("the system was not prepared")?;
         let nr = self.rhs.len();
+        for (&v, &q) in self.values.iter().zip(&self.to_lower) {
+            self.lvalues[q as usize] = v;
+        }
         let a = SparseColMatRef::new(
-            SymbolicSparseColMatRef::new_checked(nr, nr, &self.col_ptr, None, &self.row_idx),
-            &self.values,
+            SymbolicSparseColMatRef::new_checked(nr, nr, &self.lcol_ptr, None, &self.lrow_idx),
+            &self.lvalues,
         );
         let stack = MemStack::new(&mut self.scratch);
-        if symbolic
-            .factorize_numeric_llt::<f64>(
-                &mut self.l_values,
-                a,
-                Side::Upper,
-                Default::default(),
-                Par::Seq,
-                stack,
-                Default::default(),
-            )
-            .is_err()
+        if factorize_supernodal_numeric_llt::<usize, f64>(
+            &mut self.l_values,
+            a,
+            Default::default(),
+            symbolic,
+            Par::Seq,
+            stack,
+            Default::default(),
+        )
+        .is_err()
         {
             return Ok(false);
         }
@@ -752,7 +861,7 @@ impl BlockSystem {
             .as_ref()
             .ok_or("the system was not prepared")?;
         let nr = self.rhs.len();
-        let llt = LltRef::new(symbolic, &self.l_values);
+        let llt = SupernodalLltRef::<usize, f64>::new(symbolic, &self.l_values);
         let rhs = faer::MatMut::from_column_major_slice_mut(self.rhs.as_mut_slice(), nr, 1);
         llt.solve_in_place_with_conj(
             faer::Conj::No,
@@ -802,6 +911,75 @@ impl BlockSystem {
         self.elimination.back_substitute(&layout, &self.rhs, dx);
         dx.iter().all(|x| x.is_finite())
     }
+}
+
+/// The elimination tree (parent of each scalar column, -1 at a root) and column counts (the
+/// diagonal included) of the Cholesky factor of a symmetric matrix made of dense blocks: block
+/// `b` spans `size[b]` unknowns from `off[b]` (ascending), `cols[b]` lists the blocks of its
+/// upper block column (ascending, ending with `b`), and every listed coupling is a whole block,
+/// the diagonal blocks dense. The factor's block structure follows block column by block
+/// column (each column's rows below the diagonal, merged into its parent's), on bitsets; then
+/// within a block each column's parent is the next one, and its last column's is the first of
+/// the block's parent.
+pub(crate) fn block_etree(
+    cols: &[&[u32]],
+    size: &[usize],
+    off: &[usize],
+) -> (Vec<isize>, Vec<usize>) {
+    let nb = cols.len();
+    let words = nb.div_ceil(64).max(1);
+    let mut below = vec![0u64; nb * words];
+    for (c, list) in cols.iter().enumerate() {
+        for &r in list.iter() {
+            let r = r as usize;
+            if r < c {
+                below[r * words + c / 64] |= 1 << (c % 64);
+            }
+        }
+    }
+    let mut parent = vec![usize::MAX; nb];
+    let mut below_size = vec![0usize; nb];
+    for j in 0..nb {
+        let (head, tail) = below.split_at_mut((j + 1) * words);
+        let mine = &head[j * words..];
+        let mut first = usize::MAX;
+        let mut total = 0;
+        for (w, &bits) in mine.iter().enumerate() {
+            let mut b = bits;
+            while b != 0 {
+                let i = w * 64 + b.trailing_zeros() as usize;
+                first = first.min(i);
+                total += size[i];
+                b &= b - 1;
+            }
+        }
+        below_size[j] = total;
+        if first != usize::MAX {
+            parent[j] = first;
+            let p = &mut tail[(first - j - 1) * words..(first - j) * words];
+            for (d, &bits) in p.iter_mut().zip(mine) {
+                *d |= bits;
+            }
+            p[first / 64] &= !(1 << (first % 64));
+        }
+    }
+    let n: usize = size.iter().sum();
+    let mut etree = vec![-1isize; n];
+    let mut counts = vec![0usize; n];
+    for b in 0..nb {
+        let (o, m) = (off[b], size[b]);
+        for t in 0..m {
+            counts[o + t] = m - t + below_size[b];
+            etree[o + t] = if t + 1 < m {
+                (o + t + 1) as isize
+            } else if parent[b] != usize::MAX {
+                off[parent[b]] as isize
+            } else {
+                -1
+            };
+        }
+    }
+    (etree, counts)
 }
 
 #[cfg(test)]

@@ -352,3 +352,67 @@ fn blocks_are_found_by_the_table_and_by_the_search_alike() {
         }
     }
 }
+
+#[test]
+fn the_elimination_tree_from_the_blocks_is_the_one_faer_computes_from_the_scalars() {
+    use faer::sparse::linalg::cholesky::simplicial::prefactorize_symbolic_cholesky;
+    // Random block patterns (blocks of 3 and 12 unknowns, sparse couplings, some with a last
+    // block coupled to all, as the pose is), expanded to the scalar upper triangle the system
+    // hands faer: the tree and column counts must be faer's own, which `from_inner` relies on.
+    let mut rng = Rng(0x9e37_79b9_7f4a_7c15);
+    for case in 0..60 {
+        let nb = 1 + case % 23 + (case / 23) * 40;
+        let pose = case % 3 == 0;
+        let nodes = nb - usize::from(pose && nb > 1);
+        let mut size: Vec<usize> = (0..nb)
+            .map(|_| if rng.next() < 0.0 { 3 } else { 12 })
+            .collect();
+        if pose && nb > 1 {
+            size[nb - 1] = 6;
+        }
+        let mut off = vec![0usize; nb];
+        for b in 1..nb {
+            off[b] = off[b - 1] + size[b - 1];
+        }
+        let density = 0.05 + 0.3 * (rng.next() + 1.0) / 2.0;
+        let mut cols: Vec<Vec<u32>> = (0..nb).map(|b| vec![b as u32]).collect();
+        for c in 0..nodes {
+            for r in 0..c {
+                if (rng.next() + 1.0) / 2.0 < density {
+                    let at = cols[c].len() - 1;
+                    cols[c].insert(at, r as u32);
+                }
+            }
+        }
+        if pose && nb > 1 {
+            cols[nb - 1] = (0..nb as u32).collect();
+        }
+        let views: Vec<&[u32]> = cols.iter().map(|c| c.as_slice()).collect();
+        let (etree, counts) = block_etree(&views, &size, &off);
+        // The scalar upper triangle: whole off-diagonal blocks, dense diagonal ones.
+        let n: usize = size.iter().sum();
+        let mut col_ptr = vec![0usize];
+        let mut row_idx = Vec::new();
+        for (c, list) in cols.iter().enumerate() {
+            for cc in 0..size[c] {
+                for &r in &list[..list.len() - 1] {
+                    row_idx.extend(off[r as usize]..off[r as usize] + size[r as usize]);
+                }
+                row_idx.extend(off[c]..=off[c] + cc);
+                col_ptr.push(row_idx.len());
+            }
+        }
+        let a = SymbolicSparseColMatRef::new_checked(n, n, &col_ptr, None, &row_idx);
+        let mut want_tree = vec![0isize; n];
+        let mut want_counts = vec![0usize; n];
+        let mut mem = MemBuffer::new(faer::dyn_stack::StackReq::new::<usize>(n));
+        prefactorize_symbolic_cholesky(
+            &mut want_tree,
+            &mut want_counts,
+            a,
+            MemStack::new(&mut mem),
+        );
+        assert_eq!(etree, want_tree, "case {case}: {nb} blocks");
+        assert_eq!(counts, want_counts, "case {case}: {nb} blocks");
+    }
+}
