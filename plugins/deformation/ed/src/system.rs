@@ -165,11 +165,11 @@ pub struct BlockSystem {
     values: Vec<f64>,
     diag_pos: Vec<usize>,
     /// The lower triangle of the reduced matrix (what the supernodal factorisation reads), and
-    /// where each upper entry of `values` goes in it.
+    /// the entry of `values` each of its entries copies.
     lcol_ptr: Vec<usize>,
     lrow_idx: Vec<usize>,
     lvalues: Vec<f64>,
-    to_lower: Vec<u32>,
+    from_upper: Vec<u32>,
     symbolic: Option<SymbolicSupernodalCholesky<usize>>,
     l_values: Vec<f64>,
     scratch: MemBuffer,
@@ -207,7 +207,7 @@ impl Default for BlockSystem {
             lcol_ptr: Vec::new(),
             lrow_idx: Vec::new(),
             lvalues: Vec::new(),
-            to_lower: Vec::new(),
+            from_upper: Vec::new(),
             symbolic: None,
             l_values: Vec::new(),
             scratch: MemBuffer::new(faer::dyn_stack::StackReq::EMPTY),
@@ -442,30 +442,39 @@ impl BlockSystem {
         }
         // The lower triangle's layout, from the blocks (sequential writes; a transposition of
         // the scalar pattern scatters them): lower column r of block bi holds the rest of bi's
-        // diagonal block, then each block bj > bi coupled to bi (`lrows[bi]`, ascending), then
-        // the pose. `to_lower` maps each upper entry, in the upper layout's order, to its place.
+        // diagonal block, then each block bj > bi coupled to bi (`lrows[bi]`, ascending, with
+        // the block's index in `rrows`), then the pose. `from_upper` gives, for each lower entry
+        // in order, the upper entry (index into `values`) it copies.
         // (Buffers reused from the pattern before: every entry is written.)
         let nnz = row_idx.len();
-        let mut lrows: Vec<Vec<u32>> = vec![Vec::new(); nf];
+        let mut lrows: Vec<Vec<(u32, usize)>> = vec![Vec::new(); nf];
         for bj in 0..nf {
-            for &bi in &rrows[rcol_start[bj]..rcol_start[bj + 1] - 1] {
-                lrows[bi as usize].push(bj as u32);
+            for p in rcol_start[bj]..rcol_start[bj + 1] - 1 {
+                lrows[rrows[p] as usize].push((bj as u32, p));
             }
         }
         let mut lcol_ptr = std::mem::take(&mut self.lcol_ptr);
         let mut lrow_idx = std::mem::take(&mut self.lrow_idx);
+        let mut from_upper = std::mem::take(&mut self.from_upper);
         lcol_ptr.clear();
         lrow_idx.clear();
+        from_upper.clear();
         lcol_ptr.push(0);
         for bi in 0..nf {
-            for kr in 0..size(bi) {
-                lrow_idx.extend(koff[bi] + kr..koff[bi] + size(bi));
-                for &bj in &lrows[bi] {
-                    let o = koff[bj as usize];
-                    lrow_idx.extend(o..o + size(bj as usize));
+            let (oi, si) = (koff[bi], size(bi));
+            let diag_off = rowoff[rcol_start[bi + 1] - 1] as usize;
+            for kr in 0..si {
+                lrow_idx.extend(oi + kr..oi + si);
+                from_upper.extend((kr..si).map(|kc| (col_ptr[oi + kc] + diag_off + kr) as u32));
+                for &(bj, p) in &lrows[bi] {
+                    let (oj, sj) = (koff[bj as usize], size(bj as usize));
+                    let at = rowoff[p] as usize + kr;
+                    lrow_idx.extend(oj..oj + sj);
+                    from_upper.extend((0..sj).map(|kc| (col_ptr[oj + kc] + at) as u32));
                 }
                 if pose {
                     lrow_idx.extend(nk..nk + 6);
+                    from_upper.extend((0..6).map(|pc| (col_ptr[nk + pc] + oi + kr) as u32));
                 }
                 lcol_ptr.push(lrow_idx.len());
             }
@@ -473,41 +482,16 @@ impl BlockSystem {
         if pose {
             for pc in 0..6 {
                 lrow_idx.extend(nk + pc..nk + 6);
+                from_upper.extend((pc..6).map(|q| (col_ptr[nk + q] + nk + pc) as u32));
                 lcol_ptr.push(lrow_idx.len());
             }
         }
-        if lrow_idx.len() != nnz {
+        if lrow_idx.len() != nnz || from_upper.len() != nnz {
             return Err(format!(
                 "the lower triangle has {} entries, the upper {nnz}",
                 lrow_idx.len()
             ));
         }
-        let mut to_lower = std::mem::take(&mut self.to_lower);
-        to_lower.clear();
-        // Per block bi: where the next block column's rows start in bi's lower columns.
-        let mut run = vec![0usize; nf];
-        for bj in 0..nf {
-            let list = &rrows[rcol_start[bj]..rcol_start[bj + 1]];
-            let (oj, sj) = (koff[bj], size(bj));
-            for cc in 0..sj {
-                for &bi in &list[..list.len() - 1] {
-                    let (oi, si) = (koff[bi as usize], size(bi as usize));
-                    let at = run[bi as usize] + cc;
-                    to_lower.extend((0..si).map(|kr| (lcol_ptr[oi + kr] + si - kr + at) as u32));
-                }
-                to_lower.extend((0..=cc).map(|kr| (lcol_ptr[oj + kr] + cc - kr) as u32));
-            }
-            for &bi in &list[..list.len() - 1] {
-                run[bi as usize] += sj;
-            }
-        }
-        if pose {
-            for pc in 0..6 {
-                to_lower.extend((0..nk).map(|r| (lcol_ptr[r + 1] - 6 + pc) as u32));
-                to_lower.extend((0..=pc).map(|r| (lcol_ptr[nk + r] + pc - r) as u32));
-            }
-        }
-        debug_assert_eq!(to_lower.len(), nnz);
         // Elimination tree and column counts from the reduced block pattern (plus the pose
         // block, coupled to every node), then faer's supernodal structure.
         let mut bsize: Vec<usize> = (0..nf).map(size).collect();
@@ -595,7 +579,7 @@ impl BlockSystem {
         self.lvalues.resize(self.row_idx.len(), 0.0);
         self.lcol_ptr = lcol_ptr;
         self.lrow_idx = lrow_idx;
-        self.to_lower = to_lower;
+        self.from_upper = from_upper;
         // An empty system counts as prepared too.
         self.symbolic = Some(symbolic);
         self.key = key;
@@ -799,8 +783,8 @@ impl BlockSystem {
             .as_ref()
             .ok_or("the system was not prepared")?;
         let nr = self.rhs.len();
-        for (&v, &q) in self.values.iter().zip(&self.to_lower) {
-            self.lvalues[q as usize] = v;
+        for (l, &u) in self.lvalues.iter_mut().zip(&self.from_upper) {
+            *l = self.values[u as usize];
         }
         let a = SparseColMatRef::new(
             SymbolicSparseColMatRef::new_checked(nr, nr, &self.lcol_ptr, None, &self.lrow_idx),
