@@ -22,7 +22,7 @@
 //! **Symbolic factorisation from the blocks.** The reduced system's diagonal blocks are dense and
 //! its couplings whole blocks, so its elimination tree and column counts follow from the block
 //! pattern (a few hundred blocks) instead of the scalar one (tens of thousands of entries, where
-//! faer's analysis took over half of a new pattern's layout): [`block_etree`] computes them, and
+//! faer's analysis took about half of a new pattern's layout): [`block_etree`] computes them, and
 //! faer's supernodal analysis takes them. The numeric factorisation reads the lower triangle,
 //! copied into a layout made once per pattern (faer would transpose the upper one at every
 //! factorisation).
@@ -902,49 +902,36 @@ impl BlockSystem {
 /// `b` spans `size[b]` unknowns from `off[b]` (ascending), `cols[b]` lists the blocks of its
 /// upper block column (ascending, ending with `b`), and every listed coupling is a whole block,
 /// the diagonal blocks dense. The factor's block structure follows block column by block
-/// column (each column's rows below the diagonal, merged into its parent's), on bitsets; then
-/// within a block each column's parent is the next one, and its last column's is the first of
-/// the block's parent.
+/// column: a column's blocks below the diagonal are its own and its children's, the first of
+/// them is its parent, and the rest go to the parent (work and memory in proportion to the
+/// factor's blocks). Within a block each column's parent is the next one, and its last
+/// column's is the first of the block's parent.
 pub(crate) fn block_etree(
     cols: &[&[u32]],
     size: &[usize],
     off: &[usize],
 ) -> (Vec<isize>, Vec<usize>) {
     let nb = cols.len();
-    let words = nb.div_ceil(64).max(1);
-    let mut below = vec![0u64; nb * words];
+    // below[j]: blocks below the diagonal in block column j of the factor (unsorted, with
+    // repeats, until j is reached).
+    let mut below: Vec<Vec<u32>> = vec![Vec::new(); nb];
     for (c, list) in cols.iter().enumerate() {
         for &r in list.iter() {
-            let r = r as usize;
-            if r < c {
-                below[r * words + c / 64] |= 1 << (c % 64);
+            if (r as usize) < c {
+                below[r as usize].push(c as u32);
             }
         }
     }
     let mut parent = vec![usize::MAX; nb];
     let mut below_size = vec![0usize; nb];
     for j in 0..nb {
-        let (head, tail) = below.split_at_mut((j + 1) * words);
-        let mine = &head[j * words..];
-        let mut first = usize::MAX;
-        let mut total = 0;
-        for (w, &bits) in mine.iter().enumerate() {
-            let mut b = bits;
-            while b != 0 {
-                let i = w * 64 + b.trailing_zeros() as usize;
-                first = first.min(i);
-                total += size[i];
-                b &= b - 1;
-            }
-        }
-        below_size[j] = total;
-        if first != usize::MAX {
-            parent[j] = first;
-            let p = &mut tail[(first - j - 1) * words..(first - j) * words];
-            for (d, &bits) in p.iter_mut().zip(mine) {
-                *d |= bits;
-            }
-            p[first / 64] &= !(1 << (first % 64));
+        let mut mine = std::mem::take(&mut below[j]);
+        mine.sort_unstable();
+        mine.dedup();
+        below_size[j] = mine.iter().map(|&i| size[i as usize]).sum();
+        if let Some((&first, rest)) = mine.split_first() {
+            parent[j] = first as usize;
+            below[first as usize].extend_from_slice(rest);
         }
     }
     let n: usize = size.iter().sum();
