@@ -40,7 +40,9 @@ use faer::Par;
 use crate::schur::{sym12, Elimination, Layout, KEEP_FULL, KEEP_T};
 
 mod etree;
+mod lower;
 pub(crate) use etree::block_etree;
+use lower::{Blocks, Lower};
 
 /// The unknowns of a slot the reduced system keeps, in its 12-layout: the translation of an
 /// eliminated slot, all twelve (affine first) of one with data.
@@ -443,61 +445,32 @@ impl BlockSystem {
                 col_ptr.push(row_idx.len());
             }
         }
-        // The lower triangle's layout, from the blocks (sequential writes; a transposition of
-        // the scalar pattern scatters them): lower column r of block bi holds the rest of bi's
-        // diagonal block, then each block bj > bi coupled to bi (`lrows[bi]`, ascending, with
-        // the block's index in `rrows`), then the pose. `from_upper` gives, for each lower entry
-        // in order, the upper entry (index into `values`) it copies.
-        // (Buffers reused from the pattern before: every entry is written.)
-        let nnz = row_idx.len();
-        let mut lrows: Vec<Vec<(u32, usize)>> = vec![Vec::new(); nf];
-        for bj in 0..nf {
-            for p in rcol_start[bj]..rcol_start[bj + 1] - 1 {
-                lrows[rrows[p] as usize].push((bj as u32, p));
-            }
-        }
-        let mut lcol_ptr = std::mem::take(&mut self.lcol_ptr);
-        let mut lrow_idx = std::mem::take(&mut self.lrow_idx);
-        let mut from_upper = std::mem::take(&mut self.from_upper);
-        lcol_ptr.clear();
-        lrow_idx.clear();
-        from_upper.clear();
-        lcol_ptr.push(0);
-        for bi in 0..nf {
-            let (oi, si) = (koff[bi], size(bi));
-            let diag_off = rowoff[rcol_start[bi + 1] - 1] as usize;
-            for kr in 0..si {
-                lrow_idx.extend(oi + kr..oi + si);
-                from_upper.extend((kr..si).map(|kc| (col_ptr[oi + kc] + diag_off + kr) as u32));
-                for &(bj, p) in &lrows[bi] {
-                    let (oj, sj) = (koff[bj as usize], size(bj as usize));
-                    let at = rowoff[p] as usize + kr;
-                    lrow_idx.extend(oj..oj + sj);
-                    from_upper.extend((0..sj).map(|kc| (col_ptr[oj + kc] + at) as u32));
-                }
-                if pose {
-                    lrow_idx.extend(nk..nk + 6);
-                    from_upper.extend((0..6).map(|pc| (col_ptr[nk + pc] + oi + kr) as u32));
-                }
-                lcol_ptr.push(lrow_idx.len());
-            }
-        }
-        if pose {
-            for pc in 0..6 {
-                lrow_idx.extend(nk + pc..nk + 6);
-                from_upper.extend((pc..6).map(|q| (col_ptr[nk + q] + nk + pc) as u32));
-                lcol_ptr.push(lrow_idx.len());
-            }
-        }
-        if lrow_idx.len() != nnz || from_upper.len() != nnz {
-            return Err(format!(
-                "the lower triangle has {} entries, the upper {nnz}",
-                lrow_idx.len()
-            ));
-        }
+        // The lower triangle's layout (buffers reused from the pattern before).
+        let sizes: Vec<usize> = (0..nf).map(size).collect();
+        let mut lower = Lower {
+            col_ptr: std::mem::take(&mut self.lcol_ptr),
+            row_idx: std::mem::take(&mut self.lrow_idx),
+            from_upper: std::mem::take(&mut self.from_upper),
+        };
+        lower.lay_out(
+            &Blocks {
+                size: &sizes,
+                off: &koff[..nf],
+                col_start: &rcol_start,
+                rows: &rrows,
+                rowoff: &rowoff,
+            },
+            &col_ptr,
+            pose,
+        )?;
+        let Lower {
+            col_ptr: lcol_ptr,
+            row_idx: lrow_idx,
+            from_upper,
+        } = lower;
         // Elimination tree and column counts from the reduced block pattern (plus the pose
         // block, coupled to every node), then faer's supernodal structure.
-        let mut bsize: Vec<usize> = (0..nf).map(size).collect();
+        let mut bsize = sizes;
         let mut boff: Vec<usize> = koff[..nf].to_vec();
         let mut bcols: Vec<&[u32]> = (0..nf)
             .map(|bj| &rrows[rcol_start[bj]..rcol_start[bj + 1]])
