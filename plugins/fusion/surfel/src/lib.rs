@@ -161,6 +161,8 @@ pub struct SurfelNode {
     visible_used: (u64, u64),
     factorisations: u64,
     reused_factorisations: u64,
+    /// Sparse patterns laid out (symbolic factorisations), both levels of a decoupled solve.
+    layouts: u64,
 }
 
 /// A fused frame whose depth mostly did not meet the model: more samples became new surfels
@@ -387,10 +389,12 @@ impl SurfelNode {
                 .insert("fusion.solve_ms".into(), info.ms_total);
             self.factorisations += info.factorisations as u64;
             self.reused_factorisations += info.reused_factorisations as u64;
+            self.layouts += info.symbolic_builds as u64;
             for (key, v) in [
                 ("fusion.iterations", info.iterations),
                 ("fusion.factorisations", info.factorisations),
                 ("fusion.reused_factorisations", info.reused_factorisations),
+                ("fusion.layouts", info.symbolic_builds),
                 ("fusion.rejected_steps", info.rejected_steps),
             ] {
                 metrics.values.insert(key.into(), v as f64);
@@ -699,6 +703,10 @@ impl Node for SurfelNode {
             "fusion.reused_factorisations_per_solve",
             self.reused_factorisations as f64 / self.solves.max(1) as f64,
         );
+        ctx.report_eval(
+            "fusion.layouts_per_solve",
+            self.layouts as f64 / self.solves.max(1) as f64,
+        );
         ctx.report_eval("fusion.anchors", self.corr.anchors() as f64);
         let (visible, used) = self.visible_used;
         if visible > 0 {
@@ -772,6 +780,7 @@ pub fn build(p: Params, _: &BuildContext) -> Result<SurfelNode, BuildError> {
         visible_used: (0, 0),
         factorisations: 0,
         reused_factorisations: 0,
+        layouts: 0,
     })
 }
 
@@ -815,7 +824,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
             PortSpec::new(
                 "info",
                 PortType::Metrics,
-                "fusion.surfels, nodes, fused, added, removed, visible, solve_ms, iterations, factorisations, reused_factorisations, rejected_steps, correspondences, anchors, data_points_per_node (E_data's term count per node), solve_points (the visible surfels the solve took, `solve_points_per_node`), collapsed_nodes (nodes whose affine collapsed, reset to their nearest rotation)",
+                "fusion.surfels, nodes, fused, added, removed, visible, solve_ms, iterations, factorisations, reused_factorisations, layouts (sparse patterns laid out), rejected_steps, correspondences, anchors, data_points_per_node (E_data's term count per node), solve_points (the visible surfels the solve took, `solve_points_per_node`), collapsed_nodes (nodes whose affine collapsed, reset to their nearest rotation)",
             ),
         ],
         build,
