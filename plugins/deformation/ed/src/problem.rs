@@ -210,6 +210,15 @@ pub struct Weights {
     /// binds, t_j^0 its value when the solve starts (the previous frame's), mm^-2. It holds what
     /// the data cannot see (a node sliding along the surface) where the previous frame left it.
     pub motion: f64,
+    /// w_u: the same prior ||t_j - t_j^0||^2 on each solved node no data term binds (no model
+    /// point, field sample or correspondence: the unseen part, and every node of the decoupled
+    /// solve's level II), mm^-2. At 0 (the default, MIS-SLAM's behaviour) the unseen part follows
+    /// the seen part as rigidly as E_rot and E_reg allow, however far from it; above 0 the seen
+    /// part's motion fades into the unseen part over about the node spacing times
+    /// sqrt(w_reg / w_u), and tissue far from any observation stays where it was. For organs
+    /// held at their far side (the heart of `../shared/data/heart` moves 2.7 mm where the camera
+    /// sees it and 0.5 mm behind); not for a whole organ shifting in view.
+    pub unseen_motion: f64,
     /// w_r: rotation prior ||log(R~^T R)||^2 (rad^-2), when the pose is solved.
     pub pose_rot: f64,
     /// w_p: translation prior ||T - T~||^2 (mm^-2), when the pose is solved.
@@ -227,6 +236,7 @@ impl Default for Weights {
             corr: 1.0,
             corr_normal: 1.0,
             motion: 0.0,
+            unseen_motion: 0.0,
             pose_rot: 1e4,
             pose_trans: 10.0,
         }
@@ -368,6 +378,7 @@ impl SolverParams {
             ("weights.corr", w.corr),
             ("weights.corr_normal", w.corr_normal),
             ("weights.motion", w.motion),
+            ("weights.unseen_motion", w.unseen_motion),
             ("weights.pose_rot", w.pose_rot),
             ("weights.pose_trans", w.pose_trans),
             ("initial_lambda", self.initial_lambda),

@@ -132,11 +132,11 @@ pub struct Solver {
     data: DataAssembly,
     dx: Vec<f64>,
     saved: Vec<[f64; 12]>,
-    /// E_m's reference: (node, translation at the start of the solve) of each solved node a model
-    /// point binds.
-    motion_ref: Vec<(u32, Vector3<f64>)>,
-    /// Per node: whether a model point binds it (E_m's scratch).
-    motion_bound: Vec<bool>,
+    /// The motion priors' references: (node, translation at the start of the solve, weight) of
+    /// each solved node a model point binds (E_m) or no data term binds (its unseen part).
+    motion_ref: Vec<(u32, Vector3<f64>, f64)>,
+    /// Per node: what binds it (the motion priors' scratch, see `set_motion_reference`).
+    motion_bound: Vec<u8>,
 }
 
 #[inline]
@@ -181,11 +181,9 @@ impl Solver {
         for &(j, k) in &set.reg_edges {
             total += w.reg * reg_residual(graph, j, k).norm_squared();
         }
-        if w.motion > 0.0 {
-            for (j, t0) in &self.motion_ref {
-                let p = &graph.warp[*j as usize];
-                total += w.motion * (Vector3::new(p[3], p[7], p[11]) - t0).norm_squared();
-            }
+        for (j, t0, wm) in &self.motion_ref {
+            let p = &graph.warp[*j as usize];
+            total += wm * (Vector3::new(p[3], p[7], p[11]) - t0).norm_squared();
         }
         if set.data {
             let cfw = pose.inverse();
@@ -391,24 +389,22 @@ impl Solver {
                 sys.add_kron_identity(sj, sk, &u, &E4, -w.reg);
             }
         }
-        // E_m: r = t_j - t_j^0.
-        if w.motion > 0.0 {
-            for (j, t0) in &self.motion_ref {
-                let s = sys.slot[*j as usize];
-                if s == u32::MAX {
-                    continue;
-                }
-                let p = &graph.warp[*j as usize];
-                let r = Vector3::new(p[3], p[7], p[11]) - t0;
-                let mut h = [0.0; 144];
-                for a in 0..3 {
-                    let q = a * 4 + 3;
-                    h[q * 12 + q] = w.motion;
-                    sys.grad[12 * s as usize + q] += w.motion * r[a];
-                }
-                if !grad_only {
-                    sys.add_diag(s, &h);
-                }
+        // E_m and its unseen part: r = t_j - t_j^0.
+        for &(j, t0, wm) in &self.motion_ref {
+            let s = sys.slot[j as usize];
+            if s == u32::MAX {
+                continue;
+            }
+            let p = &graph.warp[j as usize];
+            let r = Vector3::new(p[3], p[7], p[11]) - t0;
+            let mut h = [0.0; 144];
+            for a in 0..3 {
+                let q = a * 4 + 3;
+                h[q * 12 + q] = wm;
+                sys.grad[12 * s as usize + q] += wm * r[a];
+            }
+            if !grad_only {
+                sys.add_diag(s, &h);
             }
         }
         if set.data && !reference {
@@ -600,7 +596,9 @@ impl Solver {
         self.cur.assoc.len()
     }
 
-    /// E_m's reference: the translations of the solved nodes some model point binds, now.
+    /// The motion priors' references, each with its weight: the translations now of the solved
+    /// nodes some model point binds (E_m, `weights.motion`) and of those no data term binds
+    /// (`weights.unseen_motion`).
     fn set_motion_reference(
         &mut self,
         graph: &EdGraph,
@@ -609,21 +607,37 @@ impl Solver {
         params: &SolverParams,
     ) {
         self.motion_ref.clear();
-        if !set.data || params.weights.motion == 0.0 {
+        let w = &params.weights;
+        let seen = if set.data { w.motion } else { 0.0 };
+        if seen == 0.0 && w.unseen_motion == 0.0 {
             return;
         }
+        // Per node: bound by a model point (2), only by correspondences (1), by nothing (0).
         let bound = &mut self.motion_bound;
         bound.clear();
-        bound.resize(graph.len(), false);
-        for b in problem.model.bindings {
-            for &x in &b.nodes[..b.len as usize] {
-                bound[x as usize] = true;
+        bound.resize(graph.len(), 0);
+        if set.data {
+            for c in problem.correspondences {
+                for &x in &c.binding.nodes[..c.binding.len as usize] {
+                    bound[x as usize] = 1;
+                }
+            }
+            for b in problem.model.bindings {
+                for &x in &b.nodes[..b.len as usize] {
+                    bound[x as usize] = 2;
+                }
             }
         }
         for &j in &set.free {
-            if bound[j as usize] {
+            let wm = match bound[j as usize] {
+                2 => seen,
+                1 => 0.0,
+                _ => w.unseen_motion,
+            };
+            if wm > 0.0 {
                 let p = &graph.warp[j as usize];
-                self.motion_ref.push((j, Vector3::new(p[3], p[7], p[11])));
+                self.motion_ref
+                    .push((j, Vector3::new(p[3], p[7], p[11]), wm));
             }
         }
     }

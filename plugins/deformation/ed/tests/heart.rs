@@ -238,6 +238,8 @@ struct Variant {
     /// Exact 3D correspondences on every n-th seen mesh vertex (0: none): what matched features
     /// give, without their noise.
     corr_every: usize,
+    /// Seen vertices skipped before the first matched one (which of them are matched).
+    corr_offset: usize,
 }
 
 struct Outcome {
@@ -247,6 +249,8 @@ struct Outcome {
     motion_seen: f64,
     motion_unseen: f64,
     correspondences: usize,
+    /// Each mesh vertex's error at the last frame, mm.
+    errors: Vec<f64>,
 }
 
 fn run(h: &Heart, v: Variant, params: &SolverParams) -> Outcome {
@@ -280,6 +284,7 @@ fn run(h: &Heart, v: Variant, params: &SolverParams) -> Outcome {
             seen.iter()
                 .map(|&i| i as usize)
                 .filter(|&i| i < nv)
+                .skip(v.corr_offset)
                 .step_by(v.corr_every)
                 .map(|i| Correspondence {
                     point: points[i],
@@ -333,6 +338,7 @@ fn run(h: &Heart, v: Variant, params: &SolverParams) -> Outcome {
         motion_seen: mean(&|i| (truth[i] - rest[i]).norm(), true),
         motion_unseen: mean(&|i| (truth[i] - rest[i]).norm(), false),
         correspondences,
+        errors: (0..nv).map(|i| (moved(i) - truth[i]).norm()).collect(),
     }
 }
 
@@ -368,6 +374,7 @@ fn the_beating_heart_is_tracked_from_noise_free_depth() {
         decoupled: false,
         step: 4,
         corr_every: 0,
+        corr_offset: 0,
     };
     let with_corr = Variant {
         corr_every: 10,
@@ -402,7 +409,7 @@ fn the_beating_heart_is_tracked_from_noise_free_depth() {
         d.motion_seen
     );
     // Unseen parts follow the graph as rigidly as it allows: better than not moving them
-    // (measured 0.78 and 0.89 mm against 1.13 mm of motion; the 0.5 mm is not met).
+    // (measured 0.78 and 0.89 mm against 1.13 mm of motion), not within the 0.5 mm.
     for o in [&b, &c] {
         assert!(
             o.unseen < 0.9 * o.motion_unseen,
@@ -410,6 +417,32 @@ fn the_beating_heart_is_tracked_from_noise_free_depth() {
             o.unseen,
             o.motion_unseen
         );
+    }
+    // This heart moves most where the camera sees it (2.2 mm on the unseen vertices within
+    // 10 mm of the seen ones) and little behind (0.45 to 0.52 mm beyond 20 mm): carried there
+    // as rigidly as the graph allows, the front's motion puts the back 1 mm off (the bands
+    // printed below). With the unseen motion prior (`weights.unseen_motion`) it fades
+    // instead. Three choices of the matched vertices (1 in 10, from the first, fourth and
+    // seventh seen one; measured 0.448, 0.469 and 0.463 mm unseen, 0.174, 0.176 and 0.169
+    // seen): the targets, 0.2 mm seen and 0.5 unseen.
+    let mut faded_params = params.clone();
+    faded_params.weights.unseen_motion = 0.3;
+    let mut faded = Vec::new();
+    for corr_offset in [0, 3, 6] {
+        let v = Variant {
+            corr_offset,
+            ..with_corr
+        };
+        let o = run(&h, v, &faded_params);
+        report(
+            &h,
+            &format!("batch, unseen_motion 0.3, from seen vertex {corr_offset}"),
+            v,
+            &o,
+        );
+        assert!(o.seen < 0.2, "offset {corr_offset}: seen {}", o.seen);
+        assert!(o.unseen < 0.5, "offset {corr_offset}: unseen {}", o.unseen);
+        faded.push(o);
     }
     // What a global smooth motion model could do there (oracles, not methods): polynomial fields
     // fitted by least squares to the true displacements, of the seen vertices or of every vertex
@@ -434,6 +467,37 @@ fn the_beating_heart_is_tracked_from_noise_free_depth() {
             );
             oracle.insert((set, degree), e);
         }
+    }
+    // How far from the seen side the graph carries its motion: the unseen vertices by their
+    // distance (rest shape) from the nearest seen one.
+    let from_seen: Vec<f64> = (0..rest.len())
+        .map(|i| {
+            (0..rest.len())
+                .filter(|&j| seen[j])
+                .map(|j| (rest[i] - rest[j]).norm())
+                .fold(f64::INFINITY, f64::min)
+        })
+        .collect();
+    for (lo, hi) in [
+        (0.0, 10.0),
+        (10.0, 20.0),
+        (20.0, 40.0),
+        (40.0, f64::INFINITY),
+    ] {
+        let band: Vec<usize> = (0..rest.len())
+            .filter(|&i| !seen[i] && from_seen[i] >= lo && from_seen[i] < hi)
+            .collect();
+        let mean = |f: &dyn Fn(usize) -> f64| {
+            band.iter().map(|&i| f(i)).sum::<f64>() / band.len().max(1) as f64
+        };
+        println!(
+            "unseen, {lo} to {hi} mm from the seen side: {} vertices, motion {:.3} mm, batch {:.3}, decoupled {:.3}, batch with the unseen motion prior {:.3}",
+            band.len(),
+            mean(&|i| disp[i].norm()),
+            mean(&|i| b.errors[i]),
+            mean(&|i| c.errors[i]),
+            mean(&|i| faded[0].errors[i])
+        );
     }
     // The graph, fed only the seen side, predicts the unseen side better than any of these
     // fitted to the seen side's exact motion (measured 0.78 mm against 1.83, 2.89 and 4.45 for
@@ -466,6 +530,7 @@ fn a_large_jump_is_not_pulled_onto_folds_of_the_surface() {
         decoupled: false,
         step: h.last,
         corr_every: 0,
+        corr_offset: 0,
     };
     let o = run(&h, v, &params);
     report(&h, "batch, depth only, one jump", v, &o);
