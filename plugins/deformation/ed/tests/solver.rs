@@ -581,6 +581,15 @@ fn bad_input_is_an_error_not_a_panic() {
     };
     let e = bad.validate().unwrap_err();
     assert!(e.contains("weights.reg"), "{e}");
+    let bad = SolverParams {
+        weights: Weights {
+            unseen_motion: -0.3,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let e = bad.validate().unwrap_err();
+    assert!(e.contains("weights.unseen_motion"), "{e}");
     assert!(EdGraph::from_points(&[], GraphParams::default()).is_err());
     assert!(GraphParams {
         point_neighbors: 9,
