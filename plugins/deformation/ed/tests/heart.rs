@@ -490,14 +490,21 @@ fn the_beating_heart_is_tracked_from_noise_free_depth() {
         let mean = |f: &dyn Fn(usize) -> f64| {
             band.iter().map(|&i| f(i)).sum::<f64>() / band.len().max(1) as f64
         };
+        let (rigid, held) = (mean(&|i| b.errors[i]), mean(&|i| faded[0].errors[i]));
         println!(
-            "unseen, {lo} to {hi} mm from the seen side: {} vertices, motion {:.3} mm, batch {:.3}, decoupled {:.3}, batch with the unseen motion prior {:.3}",
+            "unseen, {lo} to {hi} mm from the seen side: {} vertices, motion {:.3} mm, batch {rigid:.3}, decoupled {:.3}, batch with the unseen motion prior {held:.3}",
             band.len(),
             mean(&|i| disp[i].norm()),
-            mean(&|i| b.errors[i]),
             mean(&|i| c.errors[i]),
-            mean(&|i| faded[0].errors[i])
         );
+        // Where the rigid extrapolation goes wrong, the prior holds (measured 0.973 against
+        // 0.455 mm at 20 to 40 mm).
+        if lo == 20.0 {
+            assert!(
+                held < 0.7 * rigid,
+                "{lo} to {hi} mm: {held} against {rigid}"
+            );
+        }
     }
     // The graph, fed only the seen side, predicts the unseen side better than any of these
     // fitted to the seen side's exact motion (measured 0.78 mm against 1.83, 2.89 and 4.45 for
