@@ -219,23 +219,8 @@ fn the_motion_prior_holds_the_sheet_where_the_field_cannot_see_it_slide() {
         };
         params.weights.motion = motion;
         let mut graph = s.graph.clone();
-        let mut pose = Isometry3::identity();
-        if decoupled {
-            DecoupledSolver::default()
-                .solve(
-                    &mut graph,
-                    &mut pose,
-                    &problem,
-                    &params,
-                    &DecoupledParams::default(),
-                )
-                .unwrap();
-        } else {
-            let set = SolveSet::all(&graph, false);
-            Solver::default()
-                .solve(&mut graph, &mut pose, &problem, &set, &params)
-                .unwrap();
-        }
+        let dp = DecoupledParams::default();
+        solve_once(&mut graph, &problem, &params, decoupled.then_some(&dp));
         slide_and_distance(&s, &graph)
     };
     let before = slide_and_distance(&s, &s.graph).1;

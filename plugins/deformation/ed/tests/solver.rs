@@ -63,24 +63,8 @@ fn recover_with(
         },
         ..Default::default()
     };
-    let mut pose = Isometry3::identity();
-    let info = if decoupled {
-        let mut s = DecoupledSolver::default();
-        s.solve(
-            &mut graph,
-            &mut pose,
-            &problem,
-            &params,
-            &DecoupledParams::default(),
-        )
-        .unwrap()
-        .combined()
-    } else {
-        let mut s = Solver::default();
-        let set = SolveSet::all(&graph, false);
-        s.solve(&mut graph, &mut pose, &problem, &set, &params)
-            .unwrap()
-    };
+    let dp = DecoupledParams::default();
+    let info = solve_once(&mut graph, &problem, &params, decoupled.then_some(&dp));
     let (mut out, mut on) = (Vec::new(), Vec::new());
     graph.deform(&points, None, &bindings, &mut out, &mut on);
     (errors(&out, &moved), info, graph.len())
@@ -420,22 +404,12 @@ fn the_unseen_motion_prior_fades_the_seen_motion_into_the_unseen_part() {
         };
         params.weights.unseen_motion = unseen_motion;
         let mut graph = base.clone();
-        let mut pose = Isometry3::identity();
-        if decoupled {
-            let dp = DecoupledParams {
-                level2_rings: 0,
-                level2_iterations: 4,
-                ..Default::default()
-            };
-            DecoupledSolver::default()
-                .solve(&mut graph, &mut pose, &problem, &params, &dp)
-                .unwrap();
-        } else {
-            let set = SolveSet::all(&graph, false);
-            Solver::default()
-                .solve(&mut graph, &mut pose, &problem, &set, &params)
-                .unwrap();
-        }
+        let dp = DecoupledParams {
+            level2_rings: 0,
+            level2_iterations: 4,
+            ..Default::default()
+        };
+        solve_once(&mut graph, &problem, &params, decoupled.then_some(&dp));
         graph
     };
     // Mean z shift of the nodes with x in [lo, hi), and the seen points' mean error.

@@ -2,9 +2,35 @@
 //! fields and rendered into exact vertex and normal maps by the phantom's rasteriser.
 #![allow(dead_code)]
 
-use misslam_deformation_ed::{Binding, Correspondence, DistanceField, EdGraph, Intrinsics, Scan};
+use misslam_deformation_ed::{
+    Binding, Correspondence, DecoupledParams, DecoupledSolver, DistanceField, EdGraph, Info,
+    Intrinsics, Problem, Scan, SolveSet, Solver, SolverParams,
+};
 use misslam_framework::nalgebra::{Isometry3, Rotation3, Vector3};
 use misslam_source_phantom::render::{rasterize, scan_maps, Raster, View};
+
+/// One solve by fresh solvers: the decoupled one with the options `decoupled` gives, else the
+/// batch one over every node, without the pose. Returns the info (both levels combined).
+pub fn solve_once(
+    graph: &mut EdGraph,
+    problem: &Problem,
+    params: &SolverParams,
+    decoupled: Option<&DecoupledParams>,
+) -> Info {
+    let mut pose = Isometry3::identity();
+    match decoupled {
+        Some(dp) => DecoupledSolver::default()
+            .solve(graph, &mut pose, problem, params, dp)
+            .unwrap()
+            .combined(),
+        None => {
+            let set = SolveSet::all(graph, false);
+            Solver::default()
+                .solve(graph, &mut pose, problem, &set, params)
+                .unwrap()
+        }
+    }
+}
 
 pub const W: u32 = 160;
 pub const H: u32 = 120;
