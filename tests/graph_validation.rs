@@ -231,6 +231,10 @@ fn a_nan_or_an_infinity_where_a_number_is_needed_is_refused_naming_it() {
             "must be a finite number >= 0, got NaN",
         ),
         (
+            "fusion.rebind_distance_mm=-0.5",
+            "parameter `rebind_distance_mm`: must be a finite number >= 0, got -0.5",
+        ),
+        (
             "fusion.data_points_per_node=-1",
             "parameter `data_points_per_node`: must be a finite number >= 0 (0: off), got -1",
         ),

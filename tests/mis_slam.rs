@@ -328,7 +328,10 @@ fn a_five_thousand_frame_sweep_stays_bounded_and_accurate() {
     // reconstruction stays within a fifth of a millimetre of the surface. Shorter runs do not
     // show every failure: a change that kept the surfels' bindings after the graph grew
     // (session 22) passed every other test, and this run diverged from frame 3,622 on (90,091
-    // surfels, 2,018 nodes, recon 69.8 mm). About 2 minutes on 2 cores, pipelined.
+    // surfels, 2,018 nodes, recon 69.8 mm); binding again only the surfels a new node reaches
+    // (sessions 32 and 35) ended with collapsed nodes on 2 frames, as fusion moves canonical
+    // positions away from where they were bound, until those moved past `rebind_distance_mm`
+    // were bound again too. About 2 minutes on 2 cores, pipelined.
     let e = run(
         &[
             "graph.frames.count=5000",

@@ -96,6 +96,10 @@ pub struct Binding {
     pub weights: [f64; MAX_K],
     /// Number of nodes used (0 when the graph is empty).
     pub len: u8,
+    /// The support radius d_max the weights were computed with, rounded up to f32 (it fits the
+    /// struct's padding): a node added farther than this from the point leaves the binding as it
+    /// is, which lets [`EdGraph::rebind_grown`] skip the point. 0 for an empty binding.
+    pub support: f32,
 }
 
 impl Binding {
@@ -104,6 +108,7 @@ impl Binding {
         nodes: [0; MAX_K],
         weights: [0.0; MAX_K],
         len: 0,
+        support: 0.0,
     };
 
     /// (node, weight) pairs.
@@ -124,6 +129,55 @@ pub struct EdGraph {
     neighbors: Vec<Vec<u32>>,
     index: GridIndex,
     topology: u64,
+}
+
+/// New nodes up to this many are checked one by one in [`NewNodes::reach`], more through a grid.
+const REBIND_SCAN_MAX: usize = 32;
+
+/// Nodes just added to a graph ([`EdGraph::new_nodes`]).
+pub struct NewNodes<'a> {
+    new: &'a [Vector3<f64>],
+    lo: Vector3<f64>,
+    hi: Vector3<f64>,
+    index: Option<GridIndex>,
+    all: bool,
+}
+
+impl NewNodes<'_> {
+    /// Whether the new nodes change the binding `b` of point `v` (made before they came): a
+    /// node farther from `v` than the binding's support is neither among its k nearest nor
+    /// nearer than its (k + 1)-th, so its nodes and weights stay. Every binding when the graph
+    /// had no more than k nodes before (the support came from its k-th node, or there was no
+    /// binding); else an empty binding (a non-finite point) stays empty.
+    pub fn reach(&self, v: &Vector3<f64>, b: &Binding) -> bool {
+        if self.new.is_empty() {
+            return false;
+        }
+        if self.all {
+            return true;
+        }
+        if b.len == 0 {
+            return false;
+        }
+        let r = b.support as f64;
+        if (0..3).any(|a| v[a] < self.lo[a] - r || v[a] > self.hi[a] + r) {
+            return false;
+        }
+        match &self.index {
+            Some(index) => index.nearest_within(self.new, v, r).is_some(),
+            None => self.new.iter().any(|g| (g - v).norm_squared() <= r * r),
+        }
+    }
+}
+
+/// The smallest f32 at or above `x` (non-negative, finite).
+fn round_up_f32(x: f64) -> f32 {
+    let f = x as f32;
+    if (f as f64) < x {
+        f32::from_bits(f.to_bits() + 1)
+    } else {
+        f
+    }
 }
 
 /// Applies one node's warp to `v`: A (v - g) + g + t.
@@ -356,6 +410,7 @@ impl EdGraph {
             sum += w;
         }
         b.len = k as u8;
+        b.support = round_up_f32(d_max);
         if sum > 1e-12 {
             b.weights[..k].iter_mut().for_each(|w| *w /= sum);
         } else {
@@ -374,6 +429,61 @@ impl EdGraph {
                 |buf, v| self.bind_with(v, buf),
             )
             .collect()
+    }
+
+    /// What the nodes from index `first_new` on (added by [`Self::grow`]) can change: see
+    /// [`NewNodes::reach`].
+    pub fn new_nodes(&self, first_new: usize) -> NewNodes<'_> {
+        let new = &self.nodes[first_new.min(self.nodes.len())..];
+        let (mut lo, mut hi) = (
+            Vector3::repeat(f64::INFINITY),
+            Vector3::repeat(f64::NEG_INFINITY),
+        );
+        for g in new {
+            lo = lo.inf(g);
+            hi = hi.sup(g);
+        }
+        NewNodes {
+            new,
+            lo,
+            hi,
+            // A few new nodes (a frame's growth) are checked one by one; many (a first frame's)
+            // through a grid of their own.
+            index: (new.len() > REBIND_SCAN_MAX)
+                .then(|| GridIndex::build(new, self.params.spacing)),
+            // The support came from the k-th node, not the (k + 1)-th: every binding changes.
+            all: !new.is_empty() && first_new <= self.params.point_neighbors,
+        }
+    }
+
+    /// After [`Self::grow`] added the nodes from index `first_new` on, brings `bindings` (of
+    /// `points`, made before the growth) to what [`Self::bind_all`] would give now, binding again
+    /// only the points the new nodes reach ([`NewNodes::reach`]). Returns how many it bound again.
+    pub fn rebind_grown(
+        &self,
+        points: &[Vector3<f64>],
+        bindings: &mut [Binding],
+        first_new: usize,
+    ) -> usize {
+        assert_eq!(points.len(), bindings.len(), "one binding per point");
+        let new = self.new_nodes(first_new);
+        if new.new.is_empty() {
+            return 0;
+        }
+        bindings
+            .par_iter_mut()
+            .zip(points.par_iter())
+            .map_init(
+                || Vec::with_capacity(MAX_K + 1),
+                |buf, (b, v)| {
+                    if !new.reach(v, b) {
+                        return 0usize;
+                    }
+                    *b = self.bind_with(v, buf);
+                    1
+                },
+            )
+            .sum()
     }
 
     /// The warped position of canonical point `v` bound by `b`.
@@ -821,5 +931,57 @@ mod tests {
         // curvature would explain (the field is linear, so interpolation reproduces it closely).
         let after = g.warp_point(&probe, &g.bind(&probe));
         assert!((after - before).norm() < 0.3, "{before:?} -> {after:?}");
+    }
+
+    /// Bindings made before a growth, brought up to date by `rebind_grown`, equal `bind_all`'s
+    /// after it, bit for bit; and only the points the new nodes reach are rebound.
+    fn check_rebind_after_growth(
+        g: &mut EdGraph,
+        pts: &[Vector3<f64>],
+        more: &[Vector3<f64>],
+    ) -> (usize, usize) {
+        let mut b = g.bind_all(pts);
+        let first_new = g.len();
+        let added = g.grow(more);
+        assert!(added > 0);
+        let rebound = g.rebind_grown(pts, &mut b, first_new);
+        let fresh = g.bind_all(pts);
+        for (i, (x, y)) in b.iter().zip(&fresh).enumerate() {
+            assert_eq!(x, y, "point {i}");
+        }
+        (added, rebound)
+    }
+
+    #[test]
+    fn rebinding_after_growth_matches_binding_everything_again() {
+        let mut pts = sheet(40, 1.0);
+        pts.push(Vector3::new(f64::NAN, 0.0, 0.0));
+        let params = GraphParams {
+            spacing: 5.0,
+            ..Default::default()
+        };
+        // A few nodes at one edge (checked one by one): few points rebound.
+        let mut g = EdGraph::from_points(&pts, params.clone()).unwrap();
+        let strip: Vec<Vector3<f64>> = (0..15)
+            .map(|i| Vector3::new(45.0 + 0.5 * (i % 3) as f64, 2.0 * i as f64, 0.5))
+            .collect();
+        let (added, rebound) = check_rebind_after_growth(&mut g, &pts, &strip);
+        assert!(added <= REBIND_SCAN_MAX, "added {added}");
+        assert!(rebound > 0 && rebound < pts.len() / 4, "rebound {rebound}");
+        // Many nodes (through a grid): a second sheet below the first.
+        let below: Vec<Vector3<f64>> = sheet(40, 1.0)
+            .into_iter()
+            .map(|p| p + Vector3::new(0.0, 0.0, -6.0))
+            .collect();
+        let (added, rebound) = check_rebind_after_growth(&mut g, &pts, &below);
+        assert!(added > REBIND_SCAN_MAX, "added {added}");
+        assert!(rebound > 0, "rebound {rebound}");
+        // A graph of no more than k nodes binds with the k-th node's distance: every point again.
+        let few: Vec<Vector3<f64>> = (0..3)
+            .map(|i| Vector3::new(8.0 * i as f64, 0.0, 0.0))
+            .collect();
+        let mut g = EdGraph::from_nodes(few, params).unwrap();
+        let (_, rebound) = check_rebind_after_growth(&mut g, &pts, &pts[..200]);
+        assert_eq!(rebound, pts.len());
     }
 }

@@ -13,7 +13,9 @@
 //!    the most frontal and saturated observation, so the texture stays vivid and specular
 //!    highlights do not bake in), or add a new surfel;
 //! 4. remove unstable surfels (weight below `stable_weight` and unseen for `unstable_frames`);
-//! 5. grow the graph where surfels lie farther than the node spacing from every node.
+//! 5. grow the graph where surfels lie farther than the node spacing from every node; bind again
+//!    the surfels a new node reaches and those fusion has moved past `rebind_distance_mm` from
+//!    where they were bound.
 //!
 //! With the `features` input connected, keypoints matched frame to frame add E_corr constraints
 //! to the solve (see [`corr`]).
@@ -27,7 +29,7 @@ mod params;
 pub use params::Params;
 
 use misslam_deformation_ed::engine::Engine;
-use misslam_deformation_ed::graph::{Binding, EdGraph};
+use misslam_deformation_ed::graph::{Binding, EdGraph, NewNodes};
 use misslam_deformation_ed::observe::{
     color_at, color_quality, scan_from_depth_into, visible_points,
 };
@@ -58,6 +60,8 @@ struct Model {
     seen: Vec<u64>,
     stability: Vec<f32>,
     bindings: Vec<Binding>,
+    /// The canonical position each binding was made at (fusion moves the surfel on).
+    bound_at: Vec<Vector3<f64>>,
     /// Each surfel's identity, and the next one to give.
     ids: Vec<u64>,
     next_id: u64,
@@ -85,6 +89,7 @@ impl Model {
         self.seen.push(frame);
         self.stability.push(0.0);
         self.bindings.push(b);
+        self.bound_at.push(c);
         self.ids.push(self.next_id);
         self.next_id += 1;
     }
@@ -105,6 +110,7 @@ impl Model {
         filter(&mut self.seen, keep);
         filter(&mut self.stability, keep);
         filter(&mut self.bindings, keep);
+        filter(&mut self.bound_at, keep);
         filter(&mut self.ids, keep);
     }
 }
@@ -128,6 +134,35 @@ enum Sample {
         color: [u8; 3],
         quality: f32,
     },
+}
+
+/// Binds again each point that has moved farther than `distance` from where its binding was
+/// made (`bound_at`), or whose binding the graph's new nodes change (`new`, after a growth), and
+/// records where; returns how many.
+fn rebind(
+    graph: &EdGraph,
+    points: &[Vector3<f64>],
+    bindings: &mut [Binding],
+    bound_at: &mut [Vector3<f64>],
+    new: Option<&NewNodes>,
+    distance: f64,
+) -> usize {
+    let d2 = distance * distance;
+    bindings
+        .par_iter_mut()
+        .zip(bound_at.par_iter_mut())
+        .zip(points.par_iter())
+        .map(|((b, at), v)| {
+            // NaN-safe: a non-finite point is never "within" the distance.
+            let stays = (v - *at).norm_squared() <= d2 && !new.is_some_and(|n| n.reach(v, b));
+            if stays {
+                return 0usize;
+            }
+            *b = graph.bind(v);
+            *at = *v;
+            1
+        })
+        .sum()
 }
 
 /// The node.
@@ -231,7 +266,7 @@ impl SurfelNode {
         let lost = prior.is_some_and(|p| p.state == TrackingState::Lost);
         let stride = self.p.stride as usize;
         let mut metrics = Metrics::default();
-        let (mut fused, mut added, mut removed) = (0usize, 0usize, 0usize);
+        let (mut fused, mut added, mut removed, mut rebound) = (0usize, 0usize, 0usize, 0usize);
 
         if self.graph.is_none() {
             // The first frame: the model is the depth itself.
@@ -596,11 +631,11 @@ impl SurfelNode {
             if removed > 0 {
                 m.retain(&keep);
             }
-            // 5. Graph growth, then every binding again (new nodes change the neighbourhoods).
+            // 5. Graph growth; then the bindings the new nodes change, and those of the surfels
+            // fusion has moved, bound again.
+            let first_new = graph.len();
             if graph.len() < self.p.max_nodes {
-                if graph.grow(&grown) > 0 {
-                    m.bindings = graph.bind_all(&m.canon);
-                }
+                graph.grow(&grown);
             } else if !grown.is_empty() {
                 tracing::warn!(
                     frame = frame.index,
@@ -608,6 +643,15 @@ impl SurfelNode {
                     self.p.max_nodes
                 );
             }
+            let new = (graph.len() > first_new).then(|| graph.new_nodes(first_new));
+            rebound = rebind(
+                graph,
+                &m.canon,
+                &mut m.bindings,
+                &mut m.bound_at,
+                new.as_ref(),
+                self.p.rebind_distance_mm,
+            );
         }
 
         st.lap("grow");
@@ -651,6 +695,7 @@ impl SurfelNode {
             ("fusion.fused", fused as f64),
             ("fusion.added", added as f64),
             ("fusion.removed", removed as f64),
+            ("fusion.rebound", rebound as f64),
         ] {
             metrics.values.insert(key.into(), v);
         }
@@ -824,7 +869,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
             PortSpec::new(
                 "info",
                 PortType::Metrics,
-                "fusion.surfels, nodes, fused, added, removed, visible, solve_ms, iterations, factorisations, reused_factorisations, layouts (sparse patterns laid out), rejected_steps, correspondences, anchors, data_points_per_node (E_data's term count per node), solve_points (the visible surfels the solve took, `solve_points_per_node`), collapsed_nodes (nodes whose affine collapsed, reset to their nearest rotation)",
+                "fusion.surfels, nodes, fused, added, removed, rebound (surfels bound again: those a new node reaches or fusion moved past `rebind_distance_mm`), visible, solve_ms, iterations, factorisations, reused_factorisations, layouts (sparse patterns laid out), rejected_steps, correspondences, anchors, data_points_per_node (E_data's term count per node), solve_points (the visible surfels the solve took, `solve_points_per_node`), collapsed_nodes (nodes whose affine collapsed, reset to their nearest rotation)",
             ),
         ],
         build,
@@ -837,6 +882,63 @@ mod tests {
     use misslam_framework::nalgebra::Matrix3;
 
     #[test]
+    fn surfels_moved_past_the_rebind_distance_or_reached_by_new_nodes_are_bound_again() {
+        let pts: Vec<Vector3<f64>> = (0..900)
+            .map(|i| Vector3::new((i % 30) as f64, (i / 30) as f64, 0.0))
+            .collect();
+        let mut graph = EdGraph::from_points(
+            &pts,
+            misslam_deformation_ed::graph::GraphParams {
+                spacing: 4.0,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        let mut bindings = graph.bind_all(&pts);
+        let mut bound_at = pts.clone();
+        // Fusion moves the canonical points after they were bound: by 0, 0.1, ..., 0.4 mm.
+        let shift = |i: usize| 0.1 * (i % 5) as f64;
+        let moved: Vec<Vector3<f64>> = pts
+            .iter()
+            .enumerate()
+            .map(|(i, p)| p + Vector3::new(shift(i), 0.0, 0.0))
+            .collect();
+        let n = rebind(&graph, &moved, &mut bindings, &mut bound_at, None, 0.25);
+        assert_eq!(n, 2 * 900 / 5);
+        let fresh = graph.bind_all(&moved);
+        for i in 0..pts.len() {
+            if shift(i) > 0.25 {
+                assert_eq!(bindings[i], fresh[i], "point {i}");
+                assert_eq!(bound_at[i], moved[i]);
+            } else {
+                assert_eq!(bindings[i], graph.bind(&pts[i]), "point {i}");
+                assert_eq!(bound_at[i], pts[i]);
+            }
+        }
+        // A distance of 0 binds every moved point again; then the bindings are all fresh.
+        let n = rebind(&graph, &moved, &mut bindings, &mut bound_at, None, 0.0);
+        assert_eq!(n, 900 - 2 * 900 / 5 - 900 / 5);
+        assert_eq!(bindings, fresh);
+        // New nodes beyond one edge: the points they reach are bound again, and only those.
+        let first_new = graph.len();
+        let strip: Vec<Vector3<f64>> = (0..8)
+            .map(|i| Vector3::new(36.0, 4.0 * i as f64, 0.0))
+            .collect();
+        assert!(graph.grow(&strip) > 0);
+        let new = graph.new_nodes(first_new);
+        let n = rebind(
+            &graph,
+            &moved,
+            &mut bindings,
+            &mut bound_at,
+            Some(&new),
+            1.0,
+        );
+        assert!(n > 0 && n < 300, "{n} rebound");
+        assert_eq!(bindings, graph.bind_all(&moved));
+    }
+
+    #[test]
     fn local_inverses_undo_an_affine_warp() {
         // One node with A = diag(2, 1, 0.5) plus a rotation: A^-1 and A^T from its normal matrix.
         let a = Matrix3::new(0.0, -1.0, 0.0, 2.0, 0.0, 0.0, 0.0, 0.0, 0.5);
@@ -845,6 +947,7 @@ mod tests {
             nodes: [0; misslam_deformation_ed::graph::MAX_K],
             weights: [0.0; misslam_deformation_ed::graph::MAX_K],
             len: 1,
+            ..Binding::EMPTY
         };
         b.weights[0] = 1.0;
         let (a_inv, a_t) = local_inverses(&b, &nm);

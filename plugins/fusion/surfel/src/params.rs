@@ -74,6 +74,11 @@ pub struct Params {
     /// Most graph nodes; beyond it the graph stops growing (logged) and new surfels bind to the
     /// nodes there are.
     pub max_nodes: usize,
+    /// A surfel whose canonical position fusion has moved farther than this from where its
+    /// binding (nodes and Sumner weights) was made is bound again, mm; 0 binds every moved
+    /// surfel again each frame. When the graph grows, the surfels a new node reaches are bound
+    /// again too (and only those).
+    pub rebind_distance_mm: f64,
     /// Sparse correspondences (E_corr) from the `features` input.
     pub correspondences: CorrParams,
 }
@@ -107,6 +112,7 @@ impl Default for Params {
             unstable_frames: 10,
             max_surfels: 400_000,
             max_nodes: 20_000,
+            rebind_distance_mm: 0.25,
             correspondences: CorrParams::default(),
         }
     }
@@ -158,6 +164,15 @@ impl Params {
                     format!("must be a finite number >= 0 (0: off), got {v}"),
                 ));
             }
+        }
+        if !(self.rebind_distance_mm >= 0.0 && self.rebind_distance_mm.is_finite()) {
+            return Err(BuildError::param(
+                "rebind_distance_mm",
+                format!(
+                    "must be a finite number >= 0, got {}",
+                    self.rebind_distance_mm
+                ),
+            ));
         }
         if self.max_surfels == 0 {
             return Err(BuildError::param("max_surfels", "must be at least 1"));

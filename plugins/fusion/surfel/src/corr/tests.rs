@@ -21,6 +21,7 @@ fn binding(node: u32) -> Binding {
         nodes: [0; misslam_deformation_ed::graph::MAX_K],
         weights: [0.0; misslam_deformation_ed::graph::MAX_K],
         len: 1,
+        ..Binding::EMPTY
     };
     b.nodes[0] = node;
     b.weights[0] = 1.0;
