@@ -98,7 +98,7 @@ pub struct Binding {
     pub len: u8,
     /// The support radius d_max the weights were computed with, rounded up to f32 (it fits the
     /// struct's padding): a node added farther than this from the point leaves the binding as it
-    /// is, which lets [`EdGraph::rebind_grown`] skip the point. 0 for an empty binding.
+    /// is ([`NewNodes::reach`]). 0 for an empty binding.
     pub support: f32,
 }
 
@@ -386,10 +386,11 @@ impl EdGraph {
     /// Binds a canonical point to its k nearest nodes with Sumner's weights.
     pub fn bind(&self, v: &Vector3<f64>) -> Binding {
         let mut buf = Vec::with_capacity(MAX_K + 1);
-        self.bind_with(v, &mut buf)
+        self.bind_into(v, &mut buf)
     }
 
-    fn bind_with(&self, v: &Vector3<f64>, buf: &mut Vec<(f64, u32)>) -> Binding {
+    /// [`Self::bind`] with a reused search buffer (no allocation).
+    pub fn bind_into(&self, v: &Vector3<f64>, buf: &mut Vec<(f64, u32)>) -> Binding {
         let k = self.params.point_neighbors.min(self.nodes.len());
         self.index.knn(&self.nodes, v, k + 1, buf);
         if buf.len() < k || k == 0 {
@@ -426,7 +427,7 @@ impl EdGraph {
             .par_iter()
             .map_init(
                 || Vec::with_capacity(MAX_K + 1),
-                |buf, v| self.bind_with(v, buf),
+                |buf, v| self.bind_into(v, buf),
             )
             .collect()
     }
@@ -454,36 +455,6 @@ impl EdGraph {
             // The support came from the k-th node, not the (k + 1)-th: every binding changes.
             all: !new.is_empty() && first_new <= self.params.point_neighbors,
         }
-    }
-
-    /// After [`Self::grow`] added the nodes from index `first_new` on, brings `bindings` (of
-    /// `points`, made before the growth) to what [`Self::bind_all`] would give now, binding again
-    /// only the points the new nodes reach ([`NewNodes::reach`]). Returns how many it bound again.
-    pub fn rebind_grown(
-        &self,
-        points: &[Vector3<f64>],
-        bindings: &mut [Binding],
-        first_new: usize,
-    ) -> usize {
-        assert_eq!(points.len(), bindings.len(), "one binding per point");
-        let new = self.new_nodes(first_new);
-        if new.new.is_empty() {
-            return 0;
-        }
-        bindings
-            .par_iter_mut()
-            .zip(points.par_iter())
-            .map_init(
-                || Vec::with_capacity(MAX_K + 1),
-                |buf, (b, v)| {
-                    if !new.reach(v, b) {
-                        return 0usize;
-                    }
-                    *b = self.bind_with(v, buf);
-                    1
-                },
-            )
-            .sum()
     }
 
     /// The warped position of canonical point `v` bound by `b`.
@@ -933,21 +904,30 @@ mod tests {
         assert!((after - before).norm() < 0.3, "{before:?} -> {after:?}");
     }
 
-    /// Bindings made before a growth, brought up to date by `rebind_grown`, equal `bind_all`'s
-    /// after it, bit for bit; and only the points the new nodes reach are rebound.
+    /// Bindings made before a growth, bound again where the new nodes reach them
+    /// ([`NewNodes::reach`]), equal `bind_all`'s after it, bit for bit. Returns the nodes added
+    /// and the points bound again.
     fn check_rebind_after_growth(
         g: &mut EdGraph,
         pts: &[Vector3<f64>],
         more: &[Vector3<f64>],
     ) -> (usize, usize) {
-        let mut b = g.bind_all(pts);
+        let before = g.bind_all(pts);
         let first_new = g.len();
         let added = g.grow(more);
         assert!(added > 0);
-        let rebound = g.rebind_grown(pts, &mut b, first_new);
         let fresh = g.bind_all(pts);
-        for (i, (x, y)) in b.iter().zip(&fresh).enumerate() {
-            assert_eq!(x, y, "point {i}");
+        let new = g.new_nodes(first_new);
+        let mut rebound = 0;
+        for (i, (v, (old, now))) in pts.iter().zip(before.iter().zip(&fresh)).enumerate() {
+            if new.reach(v, old) {
+                rebound += 1;
+            } else {
+                assert_eq!(
+                    old, now,
+                    "point {i}: a new node changed a binding it does not reach"
+                );
+            }
         }
         (added, rebound)
     }

@@ -152,13 +152,13 @@ fn rebind(
         .par_iter_mut()
         .zip(bound_at.par_iter_mut())
         .zip(points.par_iter())
-        .map(|((b, at), v)| {
+        .map_init(Vec::new, |buf, ((b, at), v)| {
             // NaN-safe: a non-finite point is never "within" the distance.
             let stays = (v - *at).norm_squared() <= d2 && !new.is_some_and(|n| n.reach(v, b));
             if stays {
                 return 0usize;
             }
-            *b = graph.bind(v);
+            *b = graph.bind_into(v, buf);
             *at = *v;
             1
         })
