@@ -493,13 +493,7 @@ mod tests {
     #[test]
     fn detection_equals_the_definition_on_noise() {
         let (w, h) = (64usize, 48usize);
-        let mut s = 12345u32;
-        let img: Vec<u8> = (0..w * h)
-            .map(|_| {
-                s = s.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
-                (s >> 24) as u8
-            })
-            .collect();
+        let img = crate::noise_image(w * h, 12345);
         for t in [10u8, 20, 40] {
             let mut out = Vec::new();
             detect(

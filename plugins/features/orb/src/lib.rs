@@ -84,3 +84,16 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
         build,
     ))
 }
+
+/// `n` bytes of uniform noise from a linear congruential generator started at `seed` (the
+/// images of the unit tests).
+#[cfg(test)]
+pub(crate) fn noise_image(n: usize, seed: u32) -> Vec<u8> {
+    let mut state = seed;
+    (0..n)
+        .map(|_| {
+            state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            (state >> 24) as u8
+        })
+        .collect()
+}

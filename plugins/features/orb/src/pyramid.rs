@@ -255,13 +255,7 @@ mod tests {
     #[test]
     fn fixed_point_filters_are_within_one_level_of_exact_ones() {
         let (w, h) = (37usize, 29usize);
-        let mut state = 99u32;
-        let img: Vec<u8> = (0..w * h)
-            .map(|_| {
-                state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
-                (state >> 24) as u8
-            })
-            .collect();
+        let img = crate::noise_image(w * h, 99);
         let (mut out, mut tmp) = (Vec::new(), Vec::new());
         gaussian7(&img, w, h, &mut out, &mut tmp);
         let k: Vec<f64> = (-3..=3)
@@ -331,13 +325,7 @@ mod tests {
     #[test]
     fn gaussian_output_does_not_depend_on_what_the_reused_buffers_held() {
         let (w, h) = (41usize, 23usize);
-        let mut state = 7u32;
-        let img: Vec<u8> = (0..w * h)
-            .map(|_| {
-                state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
-                (state >> 24) as u8
-            })
-            .collect();
+        let img = crate::noise_image(w * h, 7);
         let (mut fresh, mut tmp) = (Vec::new(), Vec::new());
         gaussian7(&img, w, h, &mut fresh, &mut tmp);
         assert_eq!(fresh.len(), w * h);
