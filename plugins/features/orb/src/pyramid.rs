@@ -195,7 +195,28 @@ pub fn gaussian7(src: &[u8], w: usize, h: usize, dst: &mut Vec<u8>, tmp: &mut Ve
     if tmp.len() < w * h {
         tmp.resize(w * h, 0);
     }
-    // Both passes in 16-bit lanes (eight per SSE2 register): a pass sums at most 255 * 256, and
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2 (checked just above).
+        unsafe { passes_avx2(src, w, h, dst, tmp) };
+        return;
+    }
+    passes(src, w, h, dst, tmp);
+}
+
+/// [`passes`] compiled for AVX2: the same integer arithmetic, vectorised 16 lanes at a time
+/// instead of SSE2's 8 (the filter was a tenth of ORB's time).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn passes_avx2(src: &[u8], w: usize, h: usize, dst: &mut [u8], tmp: &mut [u16]) {
+    passes(src, w, h, dst, tmp)
+}
+
+/// The two passes of [`gaussian7`] over the interior (`w`, `h` >= 7; `dst` and `tmp` hold
+/// `w` x `h`), written for the compiler to vectorise.
+#[inline(always)]
+fn passes(src: &[u8], w: usize, h: usize, dst: &mut [u8], tmp: &mut [u16]) {
+    // Both passes in 16-bit lanes (8 per SSE2 register, 16 per AVX2 one): a pass sums at most 255 * 256, and
     // its result is rounded back to 8 bits before the next.
     let [k0, k1, k2, k3] = GAUSS7.map(|k| k as u16);
     // Horizontal: u8 -> u8 precision, kept in u16.
@@ -343,6 +364,21 @@ mod tests {
             let mut tmp = vec![0xffff; tmp_len];
             gaussian7(&img, w, h, &mut dst, &mut tmp);
             assert_eq!(dst, fresh, "dst {dst_len}, tmp {tmp_len}");
+        }
+    }
+
+    #[test]
+    fn gaussian_gives_the_portable_passes_output_on_every_instruction_set() {
+        // gaussian7 takes the AVX2 build where the CPU has it; `passes` called from here is
+        // the baseline (SSE2) build. Widths around the vector lengths and their tails.
+        for (w, h) in [(7usize, 7usize), (38, 9), (45, 20), (64, 13), (101, 31)] {
+            let img = crate::noise_image(w * h, (w * 31 + h) as u32);
+            let (mut out, mut tmp) = (Vec::new(), Vec::new());
+            gaussian7(&img, w, h, &mut out, &mut tmp);
+            let mut want = img.clone();
+            let mut t = vec![0u16; w * h];
+            passes(&img, w, h, &mut want, &mut t);
+            assert_eq!(out, want, "{w}x{h}");
         }
     }
 
