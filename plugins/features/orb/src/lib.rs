@@ -1,7 +1,7 @@
 //! `features.orb`: ORB keypoints and descriptors (Rublee et al., ICCV 2011; method.md 2.1) on the
 //! left image, matched along the rows of the right image to give each keypoint a 3D position.
 //!
-//! The algorithm is the plain library [`extract`] (with [`fast`] and [`pyramid`]); stereo
+//! The algorithm is the plain library [`extract`] (with [`fast`], [`pyramid`] and `measure`); stereo
 //! matching and triangulation come from `misslam-features-matching`.
 #![deny(missing_docs)]
 
@@ -9,6 +9,7 @@ pub mod extract;
 pub mod fast;
 pub mod learn;
 mod learned_pattern;
+mod measure;
 pub mod pyramid;
 
 use misslam_features_matching::extractor::{self, Detector, FeatureNode, FeatureParams};
