@@ -19,7 +19,7 @@
 
 use crate::evaluate::{Assoc, Pass};
 use crate::graph::{Binding, EdGraph, MAX_K};
-use crate::problem::{FieldJacobian, Problem, SolverParams};
+use crate::problem::{Correspondence, FieldJacobian, Problem, SolverParams};
 use crate::system::BlockSystem;
 use misslam_framework::nalgebra::{Isometry3, Matrix3, Point3, Vector3};
 use rayon::prelude::*;
@@ -63,6 +63,15 @@ type Rows = ([(Vector3<f64>, f64, f64); 5], usize);
 /// Buffers of the parallel assembly, reused across iterations and frames.
 #[derive(Default)]
 pub(crate) struct DataAssembly {
+    couplings: Couplings,
+    terms: Terms,
+    /// The couplings are listed again at the next assembly ([`Self::invalidate`]).
+    stale: bool,
+}
+
+/// Every (point, node pair) coupling under its block, listed once per solve.
+#[derive(Default)]
+struct Couplings {
     /// Per block: its couplings are `items[start[b]..start[b + 1]]`.
     start: Vec<u32>,
     items: Vec<Coupling>,
@@ -70,15 +79,71 @@ pub(crate) struct DataAssembly {
     block_nodes: Vec<(u32, u32)>,
     /// Per solved slot: the index of its diagonal block and its node.
     diag: Vec<(u32, u32)>,
-    /// Per list of couplings (a chunk of model points, then the correspondences): its block
-    /// starts and its couplings sorted by block (buffers kept across solves).
-    sorted: Vec<(Vec<u32>, Vec<Coupling>)>,
+    /// Per list of couplings (a chunk of model points, then the correspondences), sorted by
+    /// block (buffers kept across solves).
+    sorted: Vec<SortedList>,
+}
+
+/// Each point's terms at the current state, computed per iteration.
+#[derive(Default)]
+struct Terms {
     model_pt: Vec<PointTerm>,
     model_nt: Vec<NodeTerm>,
     corr_pt: Vec<PointTerm>,
     corr_nt: Vec<NodeTerm>,
     /// A^-T of every node, for the warped normals of [`FieldJacobian::Normal`].
     normal_matrices: Vec<Matrix3<f64>>,
+}
+
+/// One list's couplings sorted by block: block b's are `out[start[b]..start[b + 1]]`.
+#[derive(Default)]
+struct SortedList {
+    start: Vec<u32>,
+    out: Vec<Coupling>,
+    /// The couplings as found, with their block, and the counting sort's cursors.
+    raw: Vec<(u32, Coupling)>,
+    next: Vec<u32>,
+}
+
+impl SortedList {
+    /// Lists the couplings of `bindings` (sources `first`, `first + 1`, ...) or, with `corr`,
+    /// of the correspondences, and sorts them by block.
+    fn build(
+        &mut self,
+        sys: &BlockSystem,
+        nblocks: usize,
+        first: u32,
+        bindings: &[Binding],
+        corr: Option<&[Correspondence]>,
+    ) {
+        self.raw.clear();
+        let mut buf = [(0u32, Coupling::default()); 2 * MAX_K * MAX_K];
+        let mut add = |k: usize, b: &Binding| {
+            let n = couplings_of(sys, b, first + k as u32, &mut buf);
+            self.raw.extend_from_slice(&buf[..n]);
+        };
+        match corr {
+            Some(c) => c.iter().enumerate().for_each(|(k, c)| add(k, &c.binding)),
+            None => bindings.iter().enumerate().for_each(|(k, b)| add(k, b)),
+        }
+        self.start.clear();
+        self.start.resize(nblocks + 1, 0);
+        for (blk, _) in &self.raw {
+            self.start[*blk as usize + 1] += 1;
+        }
+        for b in 0..nblocks {
+            self.start[b + 1] += self.start[b];
+        }
+        self.next.clear();
+        self.next.extend_from_slice(&self.start[..nblocks]);
+        // Every entry is written by the scatter: the buffer is not cleared first.
+        self.out.resize(self.raw.len(), Coupling::default());
+        for &(blk, c) in &self.raw {
+            let p = &mut self.next[blk as usize];
+            self.out[*p as usize] = c;
+            *p += 1;
+        }
+    }
 }
 
 /// The couplings of one binding: (block index, coupling); at most 2 K^2.
@@ -192,9 +257,9 @@ fn fill<F>(
 where
     F: Fn(usize) -> (Vector3<f64>, Option<(Rows, Vector3<f64>)>) + Sync,
 {
-    pt.clear();
+    // No clearing: the loop writes every point's v and m, and a point's node term wherever its
+    // m is not zero (the only points whose node term is read).
     pt.resize(n, PointTerm::default());
-    nt.clear();
     nt.resize(n, NodeTerm::default());
     let partials: Vec<[f64; 42]> = pt
         .par_chunks_mut(CHUNK)
@@ -205,9 +270,10 @@ where
             for (k, (p, q)) in pch.iter_mut().zip(nch.iter_mut()).enumerate() {
                 let (v, rows) = of(ci * CHUNK + k);
                 p.v = [v.x, v.y, v.z];
-                if let Some((rows, p_cam)) = rows {
-                    p.m = terms_of(&rows, &p_cam, r_wc, pose, q, &mut acc);
-                }
+                p.m = match rows {
+                    Some((rows, p_cam)) => terms_of(&rows, &p_cam, r_wc, pose, q, &mut acc),
+                    None => [0.0; 6],
+                };
             }
             acc
         })
@@ -393,68 +459,40 @@ fn node_sum(
     }
 }
 
-impl DataAssembly {
+impl Couplings {
     /// Lists every coupling of the problem's points under its block (once per solve: the
     /// pattern of `sys` and the bindings must not change until the next call).
-    pub(crate) fn build(&mut self, sys: &BlockSystem, problem: &Problem) {
-        let collect = |first: u32, bindings: &mut dyn ExactSizeIterator<Item = &Binding>| {
-            // A binding of k nodes couples k (k + 1) / 2 blocks.
-            let mut out = Vec::with_capacity(bindings.len() * MAX_K * (MAX_K + 1) / 2);
-            let mut buf = [(0u32, Coupling::default()); 2 * MAX_K * MAX_K];
-            for (k, b) in bindings.enumerate() {
-                let n = couplings_of(sys, b, first + k as u32, &mut buf);
-                out.extend_from_slice(&buf[..n]);
-            }
-            out
-        };
-        let model: Vec<Vec<(u32, Coupling)>> = problem
-            .model
-            .bindings
-            .par_chunks(CHUNK)
-            .enumerate()
-            .map(|(ci, ch)| collect((ci * CHUNK) as u32, &mut ch.iter()))
-            .collect();
-        let corr = collect(
-            CORR,
-            &mut problem.correspondences.iter().map(|c| &c.binding),
-        );
-        // Counting sort by block, stable (point order within a block): each list (a chunk of
-        // model points, then the correspondences) sorted on its own, then each block gathers
-        // its runs list by list, all in parallel (serially this was most of the build).
+    fn build(&mut self, sys: &BlockSystem, problem: &Problem) {
+        // Per list (a chunk of model points, then the correspondences): its couplings, then
+        // sorted by block with a counting sort, stable (point order within a block), each list
+        // on its own and all in parallel; then each block gathers its runs list by list. Every
+        // buffer keeps its allocation from solve to solve (fresh ones, a few hundred kB a list,
+        // cost page faults on every solve).
         let nblocks = sys.blocks.len();
-        let lists: Vec<&Vec<(u32, Coupling)>> =
-            model.iter().chain(std::iter::once(&corr)).collect();
-        self.sorted.resize_with(lists.len(), Default::default);
-        let sorted = &mut self.sorted[..lists.len()];
-        sorted
+        let model = &problem.model.bindings;
+        let nlists = model.len().div_ceil(CHUNK) + 1;
+        self.sorted.resize_with(nlists, Default::default);
+        self.sorted[..nlists]
             .par_iter_mut()
-            .zip(lists.par_iter())
-            .for_each(|((start, out), list)| {
-                start.clear();
-                start.resize(nblocks + 1, 0);
-                for (blk, _) in list.iter() {
-                    start[*blk as usize + 1] += 1;
-                }
-                for b in 0..nblocks {
-                    start[b + 1] += start[b];
-                }
-                let mut next = start[..nblocks].to_vec();
-                out.clear();
-                out.resize(list.len(), Coupling::default());
-                for &(blk, c) in list.iter() {
-                    let p = &mut next[blk as usize];
-                    out[*p as usize] = c;
-                    *p += 1;
-                }
+            .enumerate()
+            .for_each(|(li, list)| {
+                let (first, bindings) = if li + 1 < nlists {
+                    let a = li * CHUNK;
+                    (a as u32, &model[a..(a + CHUNK).min(model.len())])
+                } else {
+                    (CORR, &[][..])
+                };
+                let corr = (li + 1 == nlists).then_some(problem.correspondences);
+                list.build(sys, nblocks, first, bindings, corr);
             });
-        let sorted = &self.sorted[..lists.len()];
+        let sorted = &self.sorted[..nlists];
         self.start.clear();
         self.start.resize(nblocks + 1, 0);
         for b in 0..nblocks {
-            let n: u32 = sorted.iter().map(|(s, _)| s[b + 1] - s[b]).sum();
+            let n: u32 = sorted.iter().map(|l| l.start[b + 1] - l.start[b]).sum();
             self.start[b + 1] = self.start[b] + n;
         }
-        self.items.clear();
+        // Every coupling is written below: the buffer is not cleared first.
         self.items
             .resize(self.start[nblocks] as usize, Coupling::default());
         let mut parts = Vec::with_capacity(nblocks);
@@ -464,14 +502,18 @@ impl DataAssembly {
             parts.push(head);
             rest = tail;
         }
-        parts.into_par_iter().enumerate().for_each(|(b, dst)| {
-            let mut at = 0;
-            for (s, v) in sorted {
-                let run = &v[s[b] as usize..s[b + 1] as usize];
-                dst[at..at + run.len()].copy_from_slice(run);
-                at += run.len();
-            }
-        });
+        parts
+            .into_par_iter()
+            .enumerate()
+            .with_min_len(8)
+            .for_each(|(b, dst)| {
+                let mut at = 0;
+                for l in sorted {
+                    let run = &l.out[l.start[b] as usize..l.start[b + 1] as usize];
+                    dst[at..at + run.len()].copy_from_slice(run);
+                    at += run.len();
+                }
+            });
         // Each block's node pair, from the slots.
         let mut node_of_slot = vec![0u32; sys.blocks_solved()];
         for (node, &s) in sys.slot.iter().enumerate() {
@@ -492,21 +534,21 @@ impl DataAssembly {
             .map(|(s, &node)| (sys.find(s as u32, s as u32) as u32, node))
             .collect();
     }
+}
 
-    /// Adds the data terms at the current state to `sys` (whose pattern [`Self::build`] saw),
-    /// with the warped points and the association of `pass`, run at that state.
+impl Terms {
+    /// Each model point's and correspondence's terms at the current state (the warped points
+    /// and the association of `pass`, run at that state); returns the pose block and gradient.
     #[allow(clippy::too_many_arguments)]
-    pub(crate) fn assemble(
+    fn fill(
         &mut self,
-        sys: &mut BlockSystem,
         graph: &EdGraph,
         problem: &Problem,
         pose: &Isometry3<f64>,
         pose_on: bool,
         params: &SolverParams,
         pass: &Pass,
-        grad_only: bool,
-    ) {
+    ) -> [f64; 42] {
         let w = &params.weights;
         let cfw = pose.inverse();
         let r_wc = *pose.rotation.to_rotation_matrix().matrix();
@@ -595,18 +637,54 @@ impl DataAssembly {
         for (t, k) in pose_acc.iter_mut().zip(&corr_acc) {
             *t += k;
         }
-        let src = Sources {
-            model_pt: &self.model_pt,
-            model_nt: &self.model_nt,
-            corr_pt: &self.corr_pt,
-            corr_nt: &self.corr_nt,
+        pose_acc
+    }
+}
+
+impl DataAssembly {
+    /// The problem's points, their bindings or the system's pattern changed (a new solve): the
+    /// couplings are listed again at the next assembly.
+    pub(crate) fn invalidate(&mut self) {
+        self.stale = true;
+    }
+
+    /// Adds the data terms at the current state to `sys` (whose pattern must not change
+    /// between [`Self::invalidate`] calls), with the warped points and the association of
+    /// `pass`, run at that state. After an invalidation the couplings are listed beside the
+    /// points' terms (the two do not depend on each other).
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn assemble(
+        &mut self,
+        sys: &mut BlockSystem,
+        graph: &EdGraph,
+        problem: &Problem,
+        pose: &Isometry3<f64>,
+        pose_on: bool,
+        params: &SolverParams,
+        pass: &Pass,
+        grad_only: bool,
+    ) {
+        let (couplings, terms) = (&mut self.couplings, &mut self.terms);
+        let fill = |terms: &mut Terms| terms.fill(graph, problem, pose, pose_on, params, pass);
+        let pose_acc = if std::mem::take(&mut self.stale) {
+            let sys = &*sys;
+            rayon::join(|| couplings.build(sys, problem), || fill(terms)).1
+        } else {
+            fill(terms)
         };
-        let (start, items) = (&self.start, &self.items);
+        let (couplings, terms) = (&self.couplings, &self.terms);
+        let src = Sources {
+            model_pt: &terms.model_pt,
+            model_nt: &terms.model_nt,
+            corr_pt: &terms.corr_pt,
+            corr_nt: &terms.corr_nt,
+        };
+        let (start, items) = (&couplings.start, &couplings.items);
         let list = |b: usize| &items[start[b] as usize..start[b + 1] as usize];
         let nodes = graph.nodes();
-        let block_nodes = &self.block_nodes;
+        let block_nodes = &couplings.block_nodes;
         let nb = sys.blocks_solved();
-        let diag = &self.diag;
+        let diag = &couplings.diag;
         let node_list = |s: usize| (list(diag[s].0 as usize), &nodes[diag[s].1 as usize]);
         if grad_only {
             // The gradient alone (the blocks and the pose block and columns are not written).

@@ -85,89 +85,88 @@ impl Pass {
         let c = params.robust_scale_mm;
         let wf = params.weights.field;
         let old_at = old.map(|o| (&o.assoc_at[..], &o.assoc[..]));
-        self.p_cam.clear();
+        // Every point's entry is written below; the per-chunk lists keep their allocations from
+        // pass to pass.
         self.p_cam.resize(n, Vector3::zeros());
-        self.chunks.clear();
-        self.chunks.par_extend(
-            self.p_cam
-                .par_chunks_mut(CHUNK)
-                .enumerate()
-                .map(|(ci, out)| {
-                    let (mut c_new, mut c_old) = (0.0, 0.0);
-                    let mut found = Vec::with_capacity(if scan.is_some() { out.len() } else { 0 });
-                    // Runs of GROUP points in three steps: warp and project each; load the scan's
-                    // vertex and normal at every pixel hit (independent loads, so their cache
-                    // misses overlap: one at a time, these loads were most of the pass); then
-                    // the costs and the association, point by point in order as before.
-                    let mut pix = [None; GROUP];
-                    let mut at = [([0f32; 3], [0f32; 3]); GROUP];
-                    for (gi, group) in out.chunks_mut(GROUP).enumerate() {
-                        let i0 = ci * CHUNK + gi * GROUP;
-                        for (k, p_out) in group.iter_mut().enumerate() {
-                            let i = i0 + k;
-                            let p = cam.point(&model.points[i], &model.bindings[i]);
-                            *p_out = p;
-                            pix[k] = scan.and_then(|scan| scan.intrinsics.pixel(&p));
-                        }
-                        if let Some(scan) = scan {
-                            for k in 0..group.len() {
-                                if let Some(idx) = pix[k] {
-                                    at[k] = (scan.vertices[idx], scan.normals[idx]);
-                                }
+        self.chunks.resize_with(n.div_ceil(CHUNK), Default::default);
+        self.p_cam
+            .par_chunks_mut(CHUNK)
+            .zip(self.chunks.par_iter_mut())
+            .enumerate()
+            .for_each(|(ci, (out, (chunk_new, chunk_old, found)))| {
+                let (mut c_new, mut c_old) = (0.0, 0.0);
+                found.clear();
+                // Runs of GROUP points in three steps: warp and project each; load the scan's
+                // vertex and normal at every pixel hit (independent loads, so their cache
+                // misses overlap: one at a time, these loads were most of the pass); then
+                // the costs and the association, point by point in order as before.
+                let mut pix = [None; GROUP];
+                let mut at = [([0f32; 3], [0f32; 3]); GROUP];
+                for (gi, group) in out.chunks_mut(GROUP).enumerate() {
+                    let i0 = ci * CHUNK + gi * GROUP;
+                    for (k, p_out) in group.iter_mut().enumerate() {
+                        let i = i0 + k;
+                        let p = cam.point(&model.points[i], &model.bindings[i]);
+                        *p_out = p;
+                        pix[k] = scan.and_then(|scan| scan.intrinsics.pixel(&p));
+                    }
+                    if let Some(scan) = scan {
+                        for k in 0..group.len() {
+                            if let Some(idx) = pix[k] {
+                                at[k] = (scan.vertices[idx], scan.normals[idx]);
                             }
-                        }
-                        for (k, p) in group.iter().enumerate() {
-                            let i = i0 + k;
-                            if let Some(field) = problem.field {
-                                if let Some((d, _)) = field.sample(p) {
-                                    let fc = wf * params.robust.weight_cost(d.abs(), c).1;
-                                    c_new += fc;
-                                    c_old += fc;
-                                }
-                            }
-                            if let Some((at_old, assoc)) = old_at {
-                                if let Some(a) = at_old.get(i).and_then(|&k| assoc.get(k as usize))
-                                {
-                                    c_old += projective_cost(p, a, params);
-                                }
-                            }
-                            if pix[k].is_none() {
-                                continue;
-                            }
-                            let (q, sn) = at[k];
-                            if !q.iter().chain(sn.iter()).all(|c| c.is_finite()) {
-                                continue;
-                            }
-                            let q = Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64);
-                            let sn = Vector3::new(sn[0] as f64, sn[1] as f64, sn[2] as f64);
-                            if (p - q).norm_squared() > max_d2 {
-                                continue;
-                            }
-                            if let Some(mn) = model.normals.get(i) {
-                                let nc = cam.normal(mn, &model.bindings[i]);
-                                if nc.dot(&sn) < cos_max {
-                                    continue;
-                                }
-                            }
-                            let a = Assoc {
-                                i: i as u32,
-                                q,
-                                n: sn,
-                            };
-                            c_new += projective_cost(p, &a, params);
-                            found.push(a);
                         }
                     }
-                    (c_new, c_old, found)
-                }),
-        );
+                    for (k, p) in group.iter().enumerate() {
+                        let i = i0 + k;
+                        if let Some(field) = problem.field {
+                            if let Some((d, _)) = field.sample(p) {
+                                let fc = wf * params.robust.weight_cost(d.abs(), c).1;
+                                c_new += fc;
+                                c_old += fc;
+                            }
+                        }
+                        if let Some((at_old, assoc)) = old_at {
+                            if let Some(a) = at_old.get(i).and_then(|&k| assoc.get(k as usize)) {
+                                c_old += projective_cost(p, a, params);
+                            }
+                        }
+                        if pix[k].is_none() {
+                            continue;
+                        }
+                        let (q, sn) = at[k];
+                        if !q.iter().chain(sn.iter()).all(|c| c.is_finite()) {
+                            continue;
+                        }
+                        let q = Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64);
+                        let sn = Vector3::new(sn[0] as f64, sn[1] as f64, sn[2] as f64);
+                        if (p - q).norm_squared() > max_d2 {
+                            continue;
+                        }
+                        if let Some(mn) = model.normals.get(i) {
+                            let nc = cam.normal(mn, &model.bindings[i]);
+                            if nc.dot(&sn) < cos_max {
+                                continue;
+                            }
+                        }
+                        let a = Assoc {
+                            i: i as u32,
+                            q,
+                            n: sn,
+                        };
+                        c_new += projective_cost(p, &a, params);
+                        found.push(a);
+                    }
+                }
+                (*chunk_new, *chunk_old) = (c_new, c_old);
+            });
         self.assoc_at.resize(n, u32::MAX);
-        for (c_new, c_old, found) in self.chunks.drain(..) {
+        for (c_new, c_old, found) in &self.chunks {
             self.cost_new += c_new;
             self.cost_old += c_old;
             for a in found {
                 self.assoc_at[a.i as usize] = self.assoc.len() as u32;
-                self.assoc.push(a);
+                self.assoc.push(*a);
             }
         }
     }

@@ -48,7 +48,8 @@ pub struct Info {
     pub symbolic_builds: usize,
     /// Milliseconds: association, assembly, factorisation plus solve, total.
     pub ms_associate: f64,
-    /// Assembly time, ms.
+    /// Assembly time, ms (with the listing of the data terms' couplings under their blocks, once
+    /// per solve, beside the first assembly's per-point terms).
     pub ms_assemble: f64,
     /// Numeric factorisation and triangular solves, ms.
     pub ms_factor: f64,
@@ -172,35 +173,7 @@ impl Solver {
         set: &SolveSet,
         params: &SolverParams,
     ) -> f64 {
-        let w = &params.weights;
-        let mut total = 0.0;
-        for &j in &set.free {
-            let (r, _) = rot_residuals(&graph.warp[j as usize]);
-            total += w.rot * r.iter().map(|x| x * x).sum::<f64>();
-        }
-        for &(j, k) in &set.reg_edges {
-            total += w.reg * reg_residual(graph, j, k).norm_squared();
-        }
-        for (j, t0, wm) in &self.motion_ref {
-            let p = &graph.warp[*j as usize];
-            total += wm * (Vector3::new(p[3], p[7], p[11]) - t0).norm_squared();
-        }
-        if set.data {
-            let cfw = pose.inverse();
-            let c = params.robust_scale_mm;
-            for corr in problem.correspondences {
-                let vw = graph.warp_point(&corr.point, &corr.binding);
-                let p = cfw * misslam_framework::nalgebra::Point3::from(vw);
-                let (_, r) = corr.rows(&p.coords, w.corr_normal);
-                total += w.corr * params.robust.weight_cost(r, c).1;
-            }
-        }
-        if set.pose {
-            total += w.pose_rot * pose_rot_residual(&problem.pose_prior, pose).norm_squared();
-            total += w.pose_trans
-                * (pose.translation.vector - problem.pose_prior.translation.vector).norm_squared();
-        }
-        total
+        other_cost(&self.motion_ref, graph, problem, pose, set, params)
     }
 
     /// Runs the pass at the current state into `cur` (new association) and returns the cost.
@@ -557,7 +530,7 @@ impl Solver {
         let key = self.pattern(graph, problem, set);
         self.system.prepare(graph.len(), &key)?;
         if set.data {
-            self.data.build(&self.system, problem);
+            self.data.invalidate();
         }
         let cost = self.start(graph, problem, pose, set, params);
         let mode = if reference {
@@ -684,7 +657,8 @@ impl Solver {
         // changed) is serial. Each reports its own time, so the two overlap in `Info`.
         let mut cur = std::mem::take(&mut self.cur);
         let (system, full) = (&mut self.system, self.full_factorisation);
-        let ((key, prepared), ms_pass) = rayon::join(
+        let motion_ref = &self.motion_ref;
+        let ((key, prepared), (other, ms_pass)) = rayon::join(
             || {
                 let key = pattern_key(graph, problem, set, full);
                 let r = system.prepare(graph.len(), &key);
@@ -697,18 +671,18 @@ impl Solver {
                 } else {
                     cur = Pass::default();
                 }
-                ta.elapsed().as_secs_f64() * 1e3
+                let other = other_cost(motion_ref, graph, problem, pose, set, params);
+                (other, ta.elapsed().as_secs_f64() * 1e3)
             },
         );
         self.cur = cur;
         prepared.0?;
         info.ms_prepare += prepared.1;
-        let ta = Instant::now();
         if set.data {
-            self.data.build(&self.system, problem);
+            self.data.invalidate();
         }
-        let mut cost = self.cur.cost_new + self.other_cost(graph, problem, pose, set, params);
-        info.ms_associate += ms_pass + ta.elapsed().as_secs_f64() * 1e3;
+        let mut cost = self.cur.cost_new + other;
+        info.ms_associate += ms_pass;
         info.cost_before = cost;
         let mut lambda = match params.method {
             Method::GaussNewton => 0.0,
@@ -777,20 +751,26 @@ impl Solver {
                     step_norm = self.dx.iter().fold(0.0, |m, x| m.max(x.abs()));
                     // The candidate state's pass: the cost with the current association decides,
                     // the new association (and its cost) is adopted with the step.
+                    // The other terms' cost (serial) beside it.
                     let ta = Instant::now();
-                    let other = self.other_cost(graph, problem, pose, set, params);
-                    if set.data {
-                        self.next.run(
-                            graph,
-                            problem,
-                            pose,
-                            params,
-                            problem.scan.is_some(),
-                            Some(&self.cur),
-                        );
-                    } else {
-                        self.next = Pass::default();
-                    }
+                    let (next, cur, motion_ref) = (&mut self.next, &self.cur, &self.motion_ref);
+                    let (other, ()) = rayon::join(
+                        || other_cost(motion_ref, graph, problem, pose, set, params),
+                        || {
+                            if set.data {
+                                next.run(
+                                    graph,
+                                    problem,
+                                    pose,
+                                    params,
+                                    problem.scan.is_some(),
+                                    Some(cur),
+                                );
+                            } else {
+                                *next = Pass::default();
+                            }
+                        },
+                    );
                     info.ms_associate += ta.elapsed().as_secs_f64() * 1e3;
                     let new_cost = other + self.next.cost_old;
                     if params.method == Method::GaussNewton || new_cost <= cost {
@@ -858,4 +838,45 @@ impl Solver {
         info.ms_total = t0.elapsed().as_secs_f64() * 1e3;
         Ok(info)
     }
+}
+
+/// The terms other than the projective and field data on the model points (E_rot, E_reg,
+/// E_corr, E_r, E_p) at the current state, with the motion priors `motion_ref`.
+fn other_cost(
+    motion_ref: &[(u32, Vector3<f64>, f64)],
+    graph: &EdGraph,
+    problem: &Problem,
+    pose: &Isometry3<f64>,
+    set: &SolveSet,
+    params: &SolverParams,
+) -> f64 {
+    let w = &params.weights;
+    let mut total = 0.0;
+    for &j in &set.free {
+        let (r, _) = rot_residuals(&graph.warp[j as usize]);
+        total += w.rot * r.iter().map(|x| x * x).sum::<f64>();
+    }
+    for &(j, k) in &set.reg_edges {
+        total += w.reg * reg_residual(graph, j, k).norm_squared();
+    }
+    for (j, t0, wm) in motion_ref {
+        let p = &graph.warp[*j as usize];
+        total += wm * (Vector3::new(p[3], p[7], p[11]) - t0).norm_squared();
+    }
+    if set.data {
+        let cfw = pose.inverse();
+        let c = params.robust_scale_mm;
+        for corr in problem.correspondences {
+            let vw = graph.warp_point(&corr.point, &corr.binding);
+            let p = cfw * misslam_framework::nalgebra::Point3::from(vw);
+            let (_, r) = corr.rows(&p.coords, w.corr_normal);
+            total += w.corr * params.robust.weight_cost(r, c).1;
+        }
+    }
+    if set.pose {
+        total += w.pose_rot * pose_rot_residual(&problem.pose_prior, pose).norm_squared();
+        total += w.pose_trans
+            * (pose.translation.vector - problem.pose_prior.translation.vector).norm_squared();
+    }
+    total
 }

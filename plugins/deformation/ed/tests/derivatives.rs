@@ -217,6 +217,53 @@ fn parallel_equals_serial(
             set.free.len()
         );
     }
+    // One solver reused on problems of other sizes and sets (its buffers keep the values of the
+    // last one) assembles what a fresh solver does: half the points and correspondences, then
+    // all of them again, with the pose and without, and without the field at poses moved 2 and
+    // 5 mm along the view, where part or all of the points find no scan point within reach
+    // (their terms must not be the last problem's).
+    let m = &problem.model;
+    let half = m.points.len() / 2;
+    let smaller = Problem {
+        model: ModelPoints {
+            points: &m.points[..half],
+            normals: &m.normals[..half.min(m.normals.len())],
+            bindings: &m.bindings[..half],
+        },
+        correspondences: &problem.correspondences[..problem.correspondences.len() / 2],
+        ..*problem
+    };
+    let with_pose = SolveSet {
+        pose: true,
+        ..all.clone()
+    };
+    let no_field = Problem {
+        field: None,
+        ..*problem
+    };
+    let moved = |mm: f64| pose * Translation3::new(0.0, 0.0, mm);
+    let mut reused = Solver::default();
+    for (p, set, pose) in [
+        (problem, &with_pose, *pose),
+        (&smaller, &subset, *pose),
+        (&no_field, &all, moved(2.0)),
+        (problem, &all, *pose),
+        (&no_field, &with_pose, moved(5.0)),
+        (&smaller, &with_pose, *pose),
+    ] {
+        let fresh = Solver::default()
+            .linearize_dense(graph, &pose, p, set, params)
+            .unwrap();
+        let again = reused
+            .linearize_dense(graph, &pose, p, set, params)
+            .unwrap();
+        assert!(
+            fresh.0 == again.0 && fresh.1 == again.1,
+            "a reused solver assembled another system ({} points, {} free)",
+            p.model.points.len(),
+            set.free.len()
+        );
+    }
     Solver::default()
         .linearize_dense(graph, pose, problem, &all, params)
         .unwrap()
