@@ -268,11 +268,16 @@ impl Runtime {
                 outputs: self.slots.iter().map(|s| s.out_specs.len()).collect(),
             };
             if pipelined {
+                let threads: Vec<usize> = self
+                    .levels
+                    .iter()
+                    .map(|l| self.graph.level_pool_threads_of(l.clone(), level_threads))
+                    .collect();
                 let schedule = pipeline::Schedule {
                     levels: &self.levels,
                     frames: &frames,
                     in_flight: self.graph.pipeline,
-                    level_threads,
+                    level_threads: &threads,
                     policy: self.graph.on_error,
                 };
                 pipeline::run(&mut self.slots, &schedule, &env, &mut collector);

@@ -33,6 +33,9 @@ use toml::Spanned;
 
 use crate::registry::{closest, unknown_key_message, BuildError, Plugin, Registry};
 
+/// The most threads a level's pool may be given (`threads`, `[graph] level_threads`).
+pub const MAX_LEVEL_THREADS: u32 = 1024;
+
 /// What the runtime does when a node fails on a frame.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default, Deserialize, serde::Serialize)]
 #[serde(rename_all = "snake_case")]
@@ -96,6 +99,7 @@ struct NodeSection {
     #[serde(default)]
     inputs: Option<Spanned<BTreeMap<Spanned<String>, Spanned<String>>>>,
     log: Option<bool>,
+    threads: Option<Spanned<i64>>,
 }
 
 /// Where an input of a validated node comes from.
@@ -120,6 +124,10 @@ pub struct NodeSpec {
     pub inputs: Vec<Option<Source>>,
     /// Whether the recorder logs this node's outputs.
     pub log: bool,
+    /// Threads this node asks of its level's pool in the pipelined schedule (`threads = N` in
+    /// its table); a level's pool has the most any of its nodes asks, those without it asking
+    /// for `[graph] level_threads` ([`Graph::level_pool_threads`]).
+    pub threads: Option<u32>,
     /// Topological level: 0 for sources, else 1 + the highest level of its inputs.
     pub level: usize,
 }
@@ -174,6 +182,16 @@ impl Graph {
             0 => cores.div_ceil(2).max(2),
             n => n as usize,
         }
+    }
+
+    /// Threads of the pool of the level made of `nodes` (indices into [`Graph::nodes`]): the
+    /// most any of them asks ([`NodeSpec::threads`]), `default` for those that do not say.
+    pub fn level_pool_threads_of(&self, nodes: Range<usize>, default: usize) -> usize {
+        self.nodes[nodes]
+            .iter()
+            .map(|n| n.threads.map_or(default, |t| t as usize))
+            .max()
+            .unwrap_or(default)
     }
 
     /// Folder of the graph file.
@@ -288,6 +306,7 @@ pub fn parse(
         inputs: Vec<(Spanned<String>, Spanned<String>)>,
         inputs_span: Range<usize>,
         log: bool,
+        threads: Option<u32>,
     }
     let mut seen: HashMap<String, Range<usize>> = HashMap::new();
     let mut pending: Vec<Pending> = Vec::new();
@@ -368,6 +387,19 @@ pub fn parse(
             }
         }
         let mut log = node.log.unwrap_or(true);
+        let threads_msg = |n: i64| {
+            format!(
+                "node `{id}`: `threads` takes a number of threads from 1 to {MAX_LEVEL_THREADS}, \
+                 got {n}"
+            )
+        };
+        let check_threads = |n: i64| (1..=MAX_LEVEL_THREADS as i64).contains(&n);
+        let mut threads = match &node.threads {
+            Some(t) if !check_threads(*t.get_ref()) => {
+                return Err(at(t.span(), threads_msg(*t.get_ref())))
+            }
+            t => t.as_ref().map(|t| *t.get_ref() as u32),
+        };
         let mut overridden: HashMap<String, String> = HashMap::new();
         for o in &my_overrides {
             match o.path.first().map(String::as_str) {
@@ -376,6 +408,15 @@ pub fn parse(
                     log = o.value.as_bool().ok_or_else(|| {
                         GraphError::at_override(file, &o.arg, "`log` takes true or false")
                     })?;
+                }
+                Some("threads") if o.path.len() == 1 => {
+                    let n = o.value.as_integer().ok_or_else(|| {
+                        GraphError::at_override(file, &o.arg, "`threads` takes an integer")
+                    })?;
+                    if !check_threads(n) {
+                        return Err(GraphError::at_override(file, &o.arg, threads_msg(n)));
+                    }
+                    threads = Some(n as u32);
                 }
                 _ => {
                     set_path(&mut params, &o.path, o.value.clone()).map_err(|m| {
@@ -436,6 +477,7 @@ pub fn parse(
             inputs,
             inputs_span,
             log,
+            threads,
         });
     }
     if pending.is_empty() {
@@ -604,6 +646,7 @@ pub fn parse(
                 })
                 .collect(),
             log: p.log,
+            threads: p.threads,
             level: level[old],
         });
     }

@@ -9,7 +9,8 @@
 //! pool the bottleneck level waited behind the others' tasks (on 2 cores, 320x240: 39 to 41 ms
 //! between frames against 31 to 33 with a pool each). A pool has `[graph] level_threads`
 //! threads, by default half the cores ([`crate::graph::Graph::level_pool_threads`]): pools of
-//! all the cores each oversubscribed a 16-core machine.
+//! all the cores each oversubscribed a 16-core machine. A node may ask its level's pool for
+//! another number (`threads = N` in its table, [`crate::graph::NodeSpec::threads`]).
 //!
 //! A frame that ends the run (end of the stream, or a failure under `on_error = "abort"`) stops
 //! it at that frame: the frames before it complete, and the ones after it that earlier levels
@@ -32,7 +33,7 @@ pub(crate) struct Schedule<'a> {
     /// Frames in the graph at once (at least 2).
     pub(crate) in_flight: u32,
     /// Threads of each level's pool.
-    pub(crate) level_threads: usize,
+    pub(crate) level_threads: &'a [usize],
     pub(crate) policy: ErrorPolicy,
 }
 
@@ -57,7 +58,7 @@ pub(crate) fn run(slots: &mut [Slot], schedule: &Schedule, env: &Env, collector:
     std::thread::scope(|scope| {
         let mut upstream: Option<Receiver<FrameState>> = None;
         let mut tokens = Some(tokens);
-        for (offset, part) in parts {
+        for ((offset, part), &threads) in parts.into_iter().zip(schedule.level_threads) {
             // A rendezvous channel: a level hands a frame on when the next one takes it.
             let (tx, rx) = sync_channel::<FrameState>(0);
             let input = match upstream.replace(rx) {
@@ -78,7 +79,7 @@ pub(crate) fn run(slots: &mut [Slot], schedule: &Schedule, env: &Env, collector:
                 // stages queued behind a depth pass), where with a pool each the system's
                 // scheduler shares the cores among the levels.
                 let pool = rayon::ThreadPoolBuilder::new()
-                    .num_threads(schedule.level_threads)
+                    .num_threads(threads)
                     .thread_name(move |i| format!("misslam-level{offset}-{i}"))
                     .build();
                 match pool {
