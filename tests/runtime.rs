@@ -543,36 +543,23 @@ fn the_pipelined_schedule_overlaps_frames() {
 
 #[test]
 fn each_pipelined_level_has_a_pool_of_level_threads() {
-    // By default three eighths of the cores (at least 2), so the levels' pools do not
-    // oversubscribe the machine; `graph.level_threads` sets it; a node's `threads` sets its level's (the most
+    // By default half the cores (at least 2), so the levels' pools do not oversubscribe the
+    // machine; `graph.level_threads` sets it; a node's `threads` sets its level's (the most
     // its nodes ask: `left` and `right` share one); one frame at a time there are no level
     // pools.
     let cores = rayon::current_num_threads();
-    let default = (3 * cores).div_ceil(8).max(2);
+    let half = cores.div_ceil(2).max(2);
     for (sets, want, level) in [
-        (&["graph.pipeline=3"][..], default, [default; 3]),
+        (&["graph.pipeline=3"][..], half, [half; 3]),
+        (&["graph.pipeline=3", "graph.level_threads=3"][..], 3, [3; 3]),
         (
-            &["graph.pipeline=3", "graph.level_threads=3"][..],
-            3,
-            [3; 3],
-        ),
-        (
-            &[
-                "graph.pipeline=3",
-                "graph.level_threads=3",
-                "right.threads=5",
-            ][..],
+            &["graph.pipeline=3", "graph.level_threads=3", "right.threads=5"][..],
             3,
             [5, 5, 3],
         ),
         (
-            &[
-                "graph.pipeline=3",
-                "left.threads=2",
-                "right.threads=1",
-                "join.threads=4",
-            ][..],
-            default,
+            &["graph.pipeline=3", "left.threads=2", "right.threads=1", "join.threads=4"][..],
+            half,
             [2, 2, 4],
         ),
     ] {

@@ -160,8 +160,7 @@ pub struct Graph {
     /// are in the early levels while earlier ones are in the late levels (the same outputs, a
     /// higher throughput).
     pub pipeline: u32,
-    /// Threads of each level's pool in the pipelined schedule (0: three eighths of the cores,
-    /// at least 2;
+    /// Threads of each level's pool in the pipelined schedule (0: half the cores, at least 2;
     /// see [`Graph::level_pool_threads`]).
     pub level_threads: u32,
     /// The recorder logs images, maps, clouds, models and meshes on every `log_every`-th frame
@@ -172,18 +171,15 @@ pub struct Graph {
 }
 
 impl Graph {
-    /// Threads of each level's pool in the pipelined schedule: `level_threads`, or with 0 three
-    /// eighths of `cores` (the threads rayon's global pool has, which `RAYON_NUM_THREADS`
-    /// sets), rounded up, at least 2. Every level with a pool of all the cores oversubscribed
-    /// them: on the 16-core H100 machine (640x480, 3 frames in flight, 8 renderers) fusion's
-    /// first parallel stage waited 7.4 to 7.6 ms for its threads, against 2.4 to 2.6 with pools
-    /// of 8 (35.0 / 35.3 against 39.5 / 40.9 frames a second); on the H200 machines (16 cores,
-    /// the main graph from memory) pools of 6 gave 1 to 6 frames a second more than pools of 8
-    /// in each of five paired rounds on two machines (session 37), their fusion 1 to 1.5 ms
-    /// less.
+    /// Threads of each level's pool in the pipelined schedule: `level_threads`, or with 0 half
+    /// of `cores` (the threads rayon's global pool has, which `RAYON_NUM_THREADS` sets), at
+    /// least 2. Every level with a pool of all the cores oversubscribed them: on the 16-core
+    /// H100 machine (640x480, 3 frames in flight, 8 renderers) fusion's first parallel stage
+    /// waited 7.4 to 7.6 ms for its threads, against 2.4 to 2.6 with pools of 8 (35.0 / 35.3
+    /// against 39.5 / 40.9 frames a second).
     pub fn level_pool_threads(&self, cores: usize) -> usize {
         match self.level_threads {
-            0 => (3 * cores).div_ceil(8).max(2),
+            0 => cores.div_ceil(2).max(2),
             n => n as usize,
         }
     }
@@ -716,7 +712,7 @@ fn apply_graph_override(file: &Path, g: &mut GraphSection, o: &Override) -> Resu
             g.pipeline = Some(Spanned::new(0..0, n));
         }
         "level_threads" => {
-            g.level_threads = Some(want_u32(0, "a number of threads (0: three eighths of the cores)")?);
+            g.level_threads = Some(want_u32(0, "a number of threads (0: half the cores)")?);
         }
         "log_every" => {
             let n = want_u32(1, "a number of frames, at least 1")?;

@@ -8,7 +8,7 @@
 //! Each level runs its nodes' parallel work (rayon) on a thread pool of its own: on one shared
 //! pool the bottleneck level waited behind the others' tasks (on 2 cores, 320x240: 39 to 41 ms
 //! between frames against 31 to 33 with a pool each). A pool has `[graph] level_threads`
-//! threads, by default three eighths of the cores ([`crate::graph::Graph::level_pool_threads`]): pools of
+//! threads, by default half the cores ([`crate::graph::Graph::level_pool_threads`]): pools of
 //! all the cores each oversubscribed a 16-core machine. A node may ask its level's pool for
 //! another number (`threads = N` in its table, [`crate::graph::NodeSpec::threads`]).
 //!
