@@ -551,14 +551,27 @@ fn each_pipelined_level_has_a_pool_of_level_threads() {
     let half = cores.div_ceil(2).max(2);
     for (sets, want, level) in [
         (&["graph.pipeline=3"][..], half, [half; 3]),
-        (&["graph.pipeline=3", "graph.level_threads=3"][..], 3, [3; 3]),
         (
-            &["graph.pipeline=3", "graph.level_threads=3", "right.threads=5"][..],
+            &["graph.pipeline=3", "graph.level_threads=3"][..],
+            3,
+            [3; 3],
+        ),
+        (
+            &[
+                "graph.pipeline=3",
+                "graph.level_threads=3",
+                "right.threads=5",
+            ][..],
             3,
             [5, 5, 3],
         ),
         (
-            &["graph.pipeline=3", "left.threads=2", "right.threads=1", "join.threads=4"][..],
+            &[
+                "graph.pipeline=3",
+                "left.threads=2",
+                "right.threads=1",
+                "join.threads=4",
+            ][..],
             half,
             [2, 2, 4],
         ),
