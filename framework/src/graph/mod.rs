@@ -33,7 +33,7 @@ use toml::Spanned;
 
 use crate::registry::{closest, unknown_key_message, BuildError, Plugin, Registry};
 
-/// The most threads a level's pool may be given (`threads`, `[graph] level_threads`).
+/// The most threads a node may ask of its level's pool (`threads = N`).
 pub const MAX_LEVEL_THREADS: u32 = 1024;
 
 /// What the runtime does when a node fails on a frame.

@@ -8,7 +8,8 @@
 //! three:
 //!
 //! 1. once per solve (the pattern and the bindings are fixed within it), every (point, node pair)
-//!    coupling is listed under the 12x12 block it lands in, by a counting sort in point order;
+//!    coupling is listed under the 12x12 block it lands in, by a counting sort in point order
+//!    (lazily, beside step 2 of the solve's first assembly: the two do not depend on each other);
 //! 2. per iteration, a parallel pass over the points computes each point's M, b and Q into compact
 //!    arrays, and sums the pose block in fixed chunks;
 //! 3. each block then sums its own couplings (one task per block, nothing shared), and each
@@ -466,8 +467,8 @@ impl Couplings {
         // Per list (a chunk of model points, then the correspondences): its couplings, then
         // sorted by block with a counting sort, stable (point order within a block), each list
         // on its own and all in parallel; then each block gathers its runs list by list. Every
-        // buffer keeps its allocation from solve to solve (fresh ones, a few hundred kB a list,
-        // cost page faults on every solve).
+        // buffer keeps its allocation from solve to solve (they were fresh on every solve, a
+        // few hundred kB a list).
         let nblocks = sys.blocks.len();
         let model = &problem.model.bindings;
         let nlists = model.len().div_ceil(CHUNK) + 1;
