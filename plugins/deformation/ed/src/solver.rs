@@ -163,19 +163,6 @@ impl Solver {
         self.system.factor_dim()
     }
 
-    /// The terms other than the projective and field data on the model points (E_rot, E_reg,
-    /// E_corr, E_r, E_p) at the current state.
-    fn other_cost(
-        &self,
-        graph: &EdGraph,
-        problem: &Problem,
-        pose: &Isometry3<f64>,
-        set: &SolveSet,
-        params: &SolverParams,
-    ) -> f64 {
-        other_cost(&self.motion_ref, graph, problem, pose, set, params)
-    }
-
     /// Runs the pass at the current state into `cur` (new association) and returns the cost.
     fn start(
         &mut self,
@@ -190,7 +177,7 @@ impl Solver {
         } else {
             self.cur = Pass::default();
         }
-        self.cur.cost_new + self.other_cost(graph, problem, pose, set, params)
+        self.cur.cost_new + other_cost(&self.motion_ref, graph, problem, pose, set, params)
     }
 
     /// Block pattern of `set`: edges between solved nodes and pairs of solved nodes that share a point.
@@ -561,7 +548,7 @@ impl Solver {
         if set.data {
             pass.run(graph, problem, pose, params, false, Some(&self.cur));
         }
-        pass.cost_old + self.other_cost(graph, problem, pose, set, params)
+        pass.cost_old + other_cost(&self.motion_ref, graph, problem, pose, set, params)
     }
 
     /// Number of projective associations at the last association.
