@@ -579,6 +579,12 @@ fn each_pipelined_level_has_a_pool_of_level_threads() {
         let (report, _) = run(DIAMOND, sets, "level_threads");
         assert!(report.error.is_none(), "{sets:?}");
         assert_eq!(report.metrics.level_threads, want, "{sets:?}");
+        // Per level: the source's, then the two below it.
+        assert_eq!(
+            report.metrics.level_pools,
+            [want, level[0], level[2]],
+            "{sets:?}"
+        );
         for (node, want) in ["left", "right", "join"].into_iter().zip(level) {
             assert_eq!(
                 report.metrics.eval[&format!("{node}.pool_threads")],
@@ -589,6 +595,7 @@ fn each_pipelined_level_has_a_pool_of_level_threads() {
     }
     let (serial, _) = run(DIAMOND, &["graph.level_threads=3"], "level_threads_serial");
     assert_eq!(serial.metrics.level_threads, 0);
+    assert!(serial.metrics.level_pools.is_empty());
     let err = graph::parse(
         Path::new("test.toml"),
         DIAMOND,

@@ -99,6 +99,10 @@ pub struct RunMetrics {
     /// resolved); 0 when they ran one frame at a time.
     #[serde(default)]
     pub level_threads: usize,
+    /// Threads of each level's pool, level by level, when the levels ran as a pipeline (a
+    /// node's `threads` setting changes its level's); empty when they ran one frame at a time.
+    #[serde(default)]
+    pub level_pools: Vec<usize>,
     /// Set when the run stopped on an error: what happened.
     pub aborted: Option<String>,
     /// The parameters every node ran with, after defaults and overrides.

@@ -214,6 +214,14 @@ impl Runtime {
         let mut error: Option<RunError> = None;
         let pipelined = self.graph.pipeline > 1 && self.levels.len() > 1;
         let level_threads = self.graph.level_pool_threads(rayon::current_num_threads());
+        let level_pools: Vec<usize> = if pipelined {
+            self.levels
+                .iter()
+                .map(|l| self.graph.level_pool_threads_of(l.clone(), level_threads))
+                .collect()
+        } else {
+            Vec::new()
+        };
 
         // start
         for slot in &mut self.slots {
@@ -268,16 +276,11 @@ impl Runtime {
                 outputs: self.slots.iter().map(|s| s.out_specs.len()).collect(),
             };
             if pipelined {
-                let threads: Vec<usize> = self
-                    .levels
-                    .iter()
-                    .map(|l| self.graph.level_pool_threads_of(l.clone(), level_threads))
-                    .collect();
                 let schedule = pipeline::Schedule {
                     levels: &self.levels,
                     frames: &frames,
                     in_flight: self.graph.pipeline,
-                    level_threads: &threads,
+                    level_threads: &level_pools,
                     policy: self.graph.on_error,
                 };
                 pipeline::run(&mut self.slots, &schedule, &env, &mut collector);
@@ -355,6 +358,7 @@ impl Runtime {
             aborted: error.as_ref().map(|e| e.to_string()),
             pipeline: if pipelined { self.graph.pipeline } else { 1 },
             level_threads: if pipelined { level_threads } else { 0 },
+            level_pools,
             ..Default::default()
         };
         for (slot, spec) in self.slots.iter().zip(&self.graph.nodes) {
