@@ -639,9 +639,10 @@ impl Solver {
         let builds0 = self.system.symbolic_builds;
         let tp = Instant::now();
         self.set_motion_reference(graph, problem, set, params);
-        // The first pass (the association at the start) needs no system: it runs beside the
-        // pattern key and the system's layout, whose symbolic factorisation (when the pattern
-        // changed) is serial. Each reports its own time, so the two overlap in `Info`.
+        // The first pass (the association at the start) and the other terms' starting cost need
+        // no system: they run beside the pattern key and the system's layout, whose symbolic
+        // factorisation (when the pattern changed) is serial. Each side reports its own time, so
+        // the two overlap in `Info`.
         let mut cur = std::mem::take(&mut self.cur);
         let (system, full) = (&mut self.system, self.full_factorisation);
         let motion_ref = &self.motion_ref;
