@@ -159,15 +159,16 @@ fn score_indexed(points: &[V3], index: &SurfaceIndex) -> Result<(ReconScores, Ve
     let n = dist.len() as f64;
     let mean = dist.iter().map(|&d| d as f64).sum::<f64>() / n;
     let rms = (dist.iter().map(|&d| (d as f64).powi(2)).sum::<f64>() / n).sqrt();
-    let mut sorted = dist.clone();
-    sorted.sort_by(f32::total_cmp);
-    let rank = ((0.95 * n).ceil() as usize).clamp(1, sorted.len());
+    let rank = ((0.95 * n).ceil() as usize).clamp(1, dist.len());
+    // The rank's value without sorting them all.
+    let mut order = dist.clone();
+    let (_, p95, _) = order.select_nth_unstable_by(rank - 1, f32::total_cmp);
     Ok((
         ReconScores {
             points: dist.len(),
             mean_mm: mean,
             rms_mm: rms,
-            p95_mm: sorted[rank - 1] as f64,
+            p95_mm: *p95 as f64,
         },
         dist,
     ))

@@ -194,10 +194,25 @@ pub fn clean_into(
             // The pair's left mask when it has one of the image's size, else the black level.
             let mask = pair.left_mask.as_ref().filter(|m| m.data.len() == w * h);
             border = match mask {
-                Some(m) => invalidate(&mut depth, &m.data, 1, |v| v[0] == 0),
-                None => invalidate(&mut depth, &img.data, c, |px| {
-                    *px.iter().max().unwrap_or(&0) < p.black_level
-                }),
+                Some(m) => invalidate::<1>(&mut depth, &m.data, |v| v[0] == 0),
+                None => {
+                    let dark = p.black_level;
+                    match c {
+                        1 => invalidate::<1>(&mut depth, &img.data, |v| v[0] < dark),
+                        3 => invalidate::<3>(&mut depth, &img.data, |v| {
+                            v[0].max(v[1]).max(v[2]) < dark
+                        }),
+                        // Other channel counts: the brightest channel of each pixel first.
+                        _ => {
+                            let hi: Vec<u8> = img
+                                .data
+                                .chunks_exact(c)
+                                .map(|px| px.iter().copied().max().unwrap_or(0))
+                                .collect();
+                            invalidate::<1>(&mut depth, &hi, |v| v[0] < dark)
+                        }
+                    }
+                }
             };
         }
         if p.mask_specular {
@@ -210,7 +225,7 @@ pub fn clean_into(
                 p.specular_max_saturation,
                 p.specular_dilate_px,
             );
-            specular = invalidate(&mut depth, &m, 1, |v| v[0] != 0);
+            specular = invalidate::<1>(&mut depth, &m, |v| v[0] != 0);
         }
     }
     let masks_ms = lap();
@@ -252,25 +267,24 @@ pub fn clean_into(
     })
 }
 
-/// Sets to NaN each valid depth whose pixel (`per_pixel` bytes of `data`) is `bad`, in parallel,
-/// and returns how many it set.
-fn invalidate(
+/// Sets to NaN each valid depth whose pixel (`C` bytes of `data`) is `bad`, in parallel, and
+/// returns how many it set.
+fn invalidate<const C: usize>(
     depth: &mut [f32],
     data: &[u8],
-    per_pixel: usize,
-    bad: impl Fn(&[u8]) -> bool + Sync,
+    bad: impl Fn(&[u8; C]) -> bool + Sync,
 ) -> usize {
     const CHUNK: usize = 4096;
     depth
         .par_chunks_mut(CHUNK)
-        .zip(data.par_chunks(CHUNK * per_pixel))
+        .zip(data.par_chunks(CHUNK * C))
         .map(|(zs, px)| {
             let mut n = 0;
-            for (z, v) in zs.iter_mut().zip(px.chunks_exact(per_pixel)) {
-                if z.is_finite() && bad(v) {
-                    *z = f32::NAN;
-                    n += 1;
-                }
+            for (z, v) in zs.iter_mut().zip(px.as_chunks::<C>().0) {
+                // Branch-free, so it vectorises.
+                let kill = z.is_finite() & bad(v);
+                n += usize::from(kill);
+                *z = if kill { f32::NAN } else { *z };
             }
             n
         })

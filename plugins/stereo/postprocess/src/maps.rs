@@ -21,19 +21,19 @@ pub struct Pinhole {
 }
 
 /// Sets depth outside `[min_mm, max_mm]` (and non-finite or non-positive depth) to NaN; returns
-/// how many pixels it invalidated.
+/// how many pixels it invalidated. Branch-free per pixel, so it vectorises.
 pub fn limit_range(depth: &mut [f32], min_mm: f32, max_mm: f32) -> usize {
     depth
         .par_chunks_mut(4096)
         .map(|chunk| {
             let mut n = 0;
             for z in chunk {
-                let in_range = z.is_finite() && *z > 0.0 && *z >= min_mm && *z <= max_mm;
-                // NaN was already invalid and is not counted.
-                if !in_range && !z.is_nan() {
-                    *z = f32::NAN;
-                    n += 1;
-                }
+                let v = *z;
+                // Every comparison with NaN is false: NaN stays NaN and is not counted (it was
+                // already invalid).
+                let in_range = v.is_finite() & (v > 0.0) & (v >= min_mm) & (v <= max_mm);
+                n += usize::from(!in_range & !v.is_nan());
+                *z = if in_range { v } else { f32::NAN };
             }
             n
         })
@@ -42,7 +42,8 @@ pub fn limit_range(depth: &mut [f32], min_mm: f32, max_mm: f32) -> usize {
 
 /// Specular highlights of an RGB (or gray) image: pixels whose brightest channel reaches
 /// `min_value` with saturation `(max - min) / max` at most `max_saturation`, grown by
-/// `dilate_px` (the highlight's rim is unreliable too). Returns 1 where masked.
+/// `dilate_px` (the highlight's rim is unreliable too). Returns 1 where masked, a byte per
+/// `channels` bytes of `data`.
 pub fn specular_mask(
     data: &[u8],
     channels: usize,
@@ -52,19 +53,44 @@ pub fn specular_mask(
     max_saturation: f32,
     dilate_px: usize,
 ) -> Vec<u8> {
-    let mut m: Vec<u8> = data
-        .par_chunks_exact(channels.max(1))
-        .map(|px| {
-            let hi = *px.iter().max().unwrap_or(&0);
-            let lo = *px.iter().min().unwrap_or(&0);
-            let sat = if hi == 0 {
-                0.0
-            } else {
-                (hi - lo) as f32 / hi as f32
-            };
-            (hi >= min_value && sat <= max_saturation) as u8
-        })
-        .collect();
+    let c = channels.max(1);
+    // The saturation test as a table: per brightest value `hi`, the largest spread `hi - lo`
+    // whose saturation, computed as above, is at most `max_saturation` (-1: none). The division
+    // is monotonic in the spread, so `spread <= widest[hi]` is the test itself, without a
+    // division per pixel.
+    let widest: [i16; 256] = std::array::from_fn(|hi| {
+        (0..=hi)
+            .rev()
+            .find(|&d| {
+                let sat = if hi == 0 { 0.0 } else { d as f32 / hi as f32 };
+                sat <= max_saturation
+            })
+            .map_or(-1, |d| d as i16)
+    });
+    let test =
+        |hi: u8, lo: u8| (hi >= min_value && i16::from(hi - lo) <= widest[hi as usize]) as u8;
+    let mut m = vec![0u8; data.len() / c];
+    const CHUNK: usize = 4096;
+    let chunks = m.par_chunks_mut(CHUNK).zip(data.par_chunks(CHUNK * c));
+    match c {
+        1 => chunks.for_each(|(o, px)| {
+            for (o, &v) in o.iter_mut().zip(px) {
+                *o = test(v, v);
+            }
+        }),
+        3 => chunks.for_each(|(o, px)| {
+            for (o, p) in o.iter_mut().zip(px.as_chunks::<3>().0) {
+                *o = test(p[0].max(p[1]).max(p[2]), p[0].min(p[1]).min(p[2]));
+            }
+        }),
+        _ => chunks.for_each(|(o, px)| {
+            for (o, p) in o.iter_mut().zip(px.chunks_exact(c)) {
+                let hi = p.iter().copied().max().unwrap_or(0);
+                let lo = p.iter().copied().min().unwrap_or(0);
+                *o = test(hi, lo);
+            }
+        }),
+    }
     if dilate_px > 0 {
         m = dilate(&m, width, height, dilate_px);
     }
@@ -168,7 +194,7 @@ const FAR: f32 = 1e30;
 
 fn sanitize(depth: &[f32]) -> Vec<f32> {
     depth
-        .iter()
+        .par_iter()
         .map(|&v| if v.is_finite() { v } else { FAR })
         .collect()
 }
@@ -184,29 +210,25 @@ struct Taps<'a> {
     lut_scale: f32,
 }
 
-/// Weighted sums of row `y`: per tap (rows, then columns, in window order) over every pixel of
-/// the row the tap falls inside the image for, so lanes are pixels and each pixel's sum runs in
-/// the per-tap definition's order.
+/// Weighted sums of row `y`, each pixel's over its window's taps in window order (rows, then
+/// columns; taps outside the image skipped), so every pixel gets the per-tap definition's bits.
+/// The interior runs 32 and then 8 pixels at a time with the sums in registers (AVX2); the
+/// pixels within `radius` of the row's ends, and all of them without AVX2, one at a time.
 fn bilateral_row(t: &Taps, y: usize, num: &mut [f32], den: &mut [f32]) {
+    let (w, r) = (t.w, t.radius);
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
+    if std::arch::is_x86_feature_detected!("avx2") && w >= 2 * r + 8 {
         // SAFETY: the CPU supports AVX2 (checked just above).
-        unsafe { bilateral_row_avx2(t, y, num, den) };
+        let end = unsafe { bilateral_interior_avx2(t, y, num, den) };
+        for x in (0..r).chain(end..w) {
+            (num[x], den[x]) = pixel_sums(t, x, y);
+        }
         return;
     }
-    bilateral_row_with(t, y, num, den, span_scalar);
+    for x in 0..w {
+        (num[x], den[x]) = pixel_sums(t, x, y);
+    }
 }
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn bilateral_row_avx2(t: &Taps, y: usize, num: &mut [f32], den: &mut [f32]) {
-    bilateral_row_with(t, y, num, den, |s, taps, centre, num, den| {
-        span_avx2(s, taps, centre, num, den)
-    });
-}
-
-/// One tap over a span of pixels: `num += w v`, `den += w` with w = sw * range(|v - z|).
-type Span<'a> = (f32, f32, &'a [f32; RANGE_LUT + 1]);
 
 #[inline(always)]
 fn range_index(v: f32, z: f32, lut_scale: f32) -> usize {
@@ -215,93 +237,93 @@ fn range_index(v: f32, z: f32, lut_scale: f32) -> usize {
     (k as u32).min(RANGE_LUT as u32) as usize
 }
 
-#[inline(always)]
-fn span_scalar(
-    (sw, lut_scale, range): Span<'_>,
-    taps: &[f32],
-    centre: &[f32],
+/// The sums of pixel (x, y): `num += w v`, `den += w` with w = spatial * range(|v - z|) over
+/// the taps inside the image, in window order.
+fn pixel_sums(t: &Taps, x: usize, y: usize) -> (f32, f32) {
+    let (w, r) = (t.w, t.radius);
+    let side = 2 * r + 1;
+    let z = t.depth[y * w + x];
+    let (mut num, mut den) = (0.0f32, 0.0f32);
+    for yy in y.saturating_sub(r)..=(y + r).min(t.h - 1) {
+        let row = &t.depth[yy * w..(yy + 1) * w];
+        let sw = &t.spatial[(yy + r - y) * side..(yy + r - y + 1) * side];
+        for xx in x.saturating_sub(r)..=(x + r).min(w - 1) {
+            let v = row[xx];
+            let wgt = sw[xx + r - x] * t.range[range_index(v, z, t.lut_scale)];
+            num += wgt * v;
+            den += wgt;
+        }
+    }
+    (num, den)
+}
+
+/// [`pixel_sums`] for the pixels `radius..end` of row `y`, blocks of 8 pixels a vector (the
+/// gather reads the range table), four vectors at once while they fit; returns `end`, the
+/// first pixel left (every pixel from there has a tap past the row's end). Each lane takes the
+/// same operations in the same order as [`pixel_sums`], so the same bits.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn bilateral_interior_avx2(t: &Taps, y: usize, num: &mut [f32], den: &mut [f32]) -> usize {
+    let (w, r) = (t.w, t.radius);
+    let mut x = r;
+    while x + 32 + r <= w {
+        bilateral_block_avx2::<4>(t, y, x, num, den);
+        x += 32;
+    }
+    while x + 8 + r <= w {
+        bilateral_block_avx2::<1>(t, y, x, num, den);
+        x += 8;
+    }
+    x
+}
+
+/// The sums of the `8 K` pixels from `x0` of row `y` (all their taps within the row).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn bilateral_block_avx2<const K: usize>(
+    t: &Taps,
+    y: usize,
+    x0: usize,
     num: &mut [f32],
     den: &mut [f32],
 ) {
-    for (((v, z), n), d) in taps.iter().zip(centre).zip(num).zip(den) {
-        let wgt = sw * range[range_index(*v, *z, lut_scale)];
-        *n += wgt * v;
-        *d += wgt;
-    }
-}
-
-/// [`span_scalar`] eight pixels at a time (the gather reads the table); the same operations in
-/// the same order per pixel, so the same bits.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn span_avx2(s: Span<'_>, taps: &[f32], centre: &[f32], num: &mut [f32], den: &mut [f32]) {
     use std::arch::x86_64::*;
-    let n = taps.len().min(centre.len()).min(num.len()).min(den.len());
-    let (sw, lut_scale, range) = s;
-    let lanes = n / 8 * 8;
-    let swv = _mm256_set1_ps(sw);
-    let scale = _mm256_set1_ps(lut_scale);
-    let top = _mm256_set1_ps(RANGE_LUT as f32);
-    let abs = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
-    for i in (0..lanes).step_by(8) {
-        // SAFETY: i + 8 <= n, within every slice; the gather indices are in [0, RANGE_LUT]
-        // (|v - z| * scale is finite and non-negative, clamped to RANGE_LUT before truncation).
-        unsafe {
-            let v = _mm256_loadu_ps(taps.as_ptr().add(i));
-            let z = _mm256_loadu_ps(centre.as_ptr().add(i));
-            let t = _mm256_min_ps(
-                _mm256_mul_ps(_mm256_and_ps(_mm256_sub_ps(v, z), abs), scale),
-                top,
-            );
-            let rw = _mm256_i32gather_ps::<4>(range.as_ptr(), _mm256_cvttps_epi32(t));
-            let wgt = _mm256_mul_ps(swv, rw);
-            let pn = num.as_mut_ptr().add(i);
-            let pd = den.as_mut_ptr().add(i);
-            _mm256_storeu_ps(
-                pn,
-                _mm256_add_ps(_mm256_loadu_ps(pn), _mm256_mul_ps(wgt, v)),
-            );
-            _mm256_storeu_ps(pd, _mm256_add_ps(_mm256_loadu_ps(pd), wgt));
-        }
-    }
-    span_scalar(
-        s,
-        &taps[lanes..n],
-        &centre[lanes..n],
-        &mut num[lanes..n],
-        &mut den[lanes..n],
-    );
-}
-
-/// Weighted sums of row `y`: per tap (rows, then columns, in window order) over every pixel of
-/// the row the tap falls inside the image for, so lanes are pixels and each pixel's sum runs in
-/// the per-tap definition's order.
-#[inline(always)]
-fn bilateral_row_with<F>(t: &Taps, y: usize, num: &mut [f32], den: &mut [f32], span: F)
-where
-    F: Fn(Span<'_>, &[f32], &[f32], &mut [f32], &mut [f32]),
-{
     let (w, r) = (t.w, t.radius);
     let side = 2 * r + 1;
-    num.fill(0.0);
-    den.fill(0.0);
-    let centre = &t.depth[y * w..(y + 1) * w];
-    for yy in y.saturating_sub(r)..=(y + r).min(t.h - 1) {
-        let src = &t.depth[yy * w..(yy + 1) * w];
-        for dxi in 0..side {
-            // Tap column offset dx = dxi - r: pixels x with 0 <= x + dx < w.
-            let sw = t.spatial[(yy + r - y) * side + dxi];
-            let (x0, x1) = (r.saturating_sub(dxi), (w + r).saturating_sub(dxi).min(w));
-            if x0 >= x1 {
-                continue;
+    assert!(x0 >= r && x0 + 8 * K + r <= w && num.len() >= x0 + 8 * K && den.len() >= x0 + 8 * K);
+    let scale = _mm256_set1_ps(t.lut_scale);
+    let top = _mm256_set1_ps(RANGE_LUT as f32);
+    let abs = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
+    let row0 = &t.depth[y * w..(y + 1) * w];
+    // SAFETY (every load and store below): the lanes x0 - r .. x0 + 8 K + r lie within the row
+    // (asserted above); the gather indices are in [0, RANGE_LUT] (|v - z| * scale is finite and
+    // non-negative, clamped to RANGE_LUT before truncation).
+    unsafe {
+        let z: [__m256; K] =
+            std::array::from_fn(|j| _mm256_loadu_ps(row0.as_ptr().add(x0 + 8 * j)));
+        let mut n = [_mm256_setzero_ps(); K];
+        let mut d = [_mm256_setzero_ps(); K];
+        for yy in y.saturating_sub(r)..=(y + r).min(t.h - 1) {
+            let row = t.depth[yy * w..(yy + 1) * w].as_ptr().add(x0 - r);
+            let sw = &t.spatial[(yy + r - y) * side..(yy + r - y + 1) * side];
+            for (dxi, &s) in sw.iter().enumerate() {
+                let swv = _mm256_set1_ps(s);
+                for j in 0..K {
+                    let v = _mm256_loadu_ps(row.add(dxi + 8 * j));
+                    let k = _mm256_min_ps(
+                        _mm256_mul_ps(_mm256_and_ps(_mm256_sub_ps(v, z[j]), abs), scale),
+                        top,
+                    );
+                    let rw = _mm256_i32gather_ps::<4>(t.range.as_ptr(), _mm256_cvttps_epi32(k));
+                    let wgt = _mm256_mul_ps(swv, rw);
+                    n[j] = _mm256_add_ps(n[j], _mm256_mul_ps(wgt, v));
+                    d[j] = _mm256_add_ps(d[j], wgt);
+                }
             }
-            span(
-                (sw, t.lut_scale, t.range),
-                &src[x0 + dxi - r..x1 + dxi - r],
-                &centre[x0..x1],
-                &mut num[x0..x1],
-                &mut den[x0..x1],
-            );
+        }
+        for j in 0..K {
+            _mm256_storeu_ps(num.as_mut_ptr().add(x0 + 8 * j), n[j]);
+            _mm256_storeu_ps(den.as_mut_ptr().add(x0 + 8 * j), d[j]);
         }
     }
 }
@@ -434,6 +456,38 @@ mod tests {
     }
 
     #[test]
+    fn specular_mask_equals_the_per_pixel_definition() {
+        // Every (brightest, darkest) pair against the division the mask's table stands for, at
+        // saturations on and between the steps of d / hi (0.2 is 1/5, 2/10, ...), for 1, 3 and
+        // 4 channels (the last the generic path), over more pixels than one parallel chunk.
+        let pixels: Vec<[u8; 4]> = (0..=255u8)
+            .flat_map(|hi| (0..=hi).map(move |lo| [lo, hi, lo.midpoint(hi), lo]))
+            .collect();
+        for max_sat in [0.0, 0.15, 0.2, 1.0 / 3.0, 0.5, 1.0] {
+            for min_value in [0u8, 1, 240] {
+                let want = |px: &[u8]| {
+                    let hi = *px.iter().max().unwrap();
+                    let lo = *px.iter().min().unwrap();
+                    let sat = if hi == 0 {
+                        0.0
+                    } else {
+                        (hi - lo) as f32 / hi as f32
+                    };
+                    u8::from(hi >= min_value && sat <= max_sat)
+                };
+                for c in [1usize, 3, 4] {
+                    let data: Vec<u8> = pixels.iter().flat_map(|p| p[4 - c..].to_vec()).collect();
+                    let got = specular_mask(&data, c, data.len() / c, 1, min_value, max_sat, 0);
+                    assert_eq!(got.len(), pixels.len());
+                    for (i, px) in data.chunks_exact(c).enumerate() {
+                        assert_eq!(got[i], want(px), "{px:?}, {c} channels, sat {max_sat}");
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
     fn dilation_equals_the_square_window_definition() {
         let mut s = 99u32;
         for (w, h, r) in [(1, 1, 2), (7, 5, 1), (19, 11, 3), (6, 9, 8), (30, 4, 0)] {
@@ -462,7 +516,14 @@ mod tests {
     fn bilateral_equals_the_per_tap_definition() {
         // The clipped-window loops must take the same taps in the same order as testing every
         // tap against the image: equal bits, on a map with holes, at the borders and the corners.
-        let (w, h, radius, sigma_px, sigma_mm) = (23usize, 17usize, 3usize, 2.0f32, 1.5f32);
+        // 23 px wide takes the vector blocks of 8 pixels, 77 px those of 32 too.
+        for (w, h) in [(23usize, 17usize), (77, 9)] {
+            bilateral_equals_the_per_tap_definition_at(w, h);
+        }
+    }
+
+    fn bilateral_equals_the_per_tap_definition_at(w: usize, h: usize) {
+        let (radius, sigma_px, sigma_mm) = (3usize, 2.0f32, 1.5f32);
         let mut s = 7u32;
         let depth: Vec<f32> = (0..w * h)
             .map(|i| {
@@ -509,7 +570,11 @@ mod tests {
                     den += sw * rw;
                 }
             }
-            assert_eq!(got[i].to_bits(), (num / den).to_bits(), "pixel {i}");
+            assert_eq!(
+                got[i].to_bits(),
+                (num / den).to_bits(),
+                "pixel {i} of {w}x{h}"
+            );
         }
     }
 
