@@ -294,20 +294,37 @@ fn invalidate<const C: usize>(
 /// The node.
 pub struct PostprocessNode {
     params: Params,
-    /// The last frame's vertex and normal maps: once no other holder is left (the frame is
-    /// done), their buffers are taken back for the next frame's maps.
-    last: Option<(Arc<VertexMap>, Arc<NormalMap>)>,
+    /// The vertex and normal maps of the last frames (at most [`KEPT_MAPS`], the oldest first):
+    /// once no other holder is left, their buffers are taken back for a new frame's maps.
+    recent: std::collections::VecDeque<(Arc<VertexMap>, Arc<NormalMap>)>,
 }
 
+/// How many frames' maps `depth.postprocess` keeps for their buffers: a consumer may hold a
+/// frame's maps into the next frame (`fusion.surfel` anchors a frame's keypoints at the start
+/// of the next), and pipelined, the later levels are a frame or two behind.
+pub const KEPT_MAPS: usize = 3;
+
 impl PostprocessNode {
-    /// The last maps' buffers when nothing else holds them, else empty ones.
+    /// The buffers of the oldest kept maps nothing else holds, else empty ones.
     fn recycled(&mut self) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
-        match self.last.take() {
+        let free = self
+            .recent
+            .iter()
+            .position(|(v, n)| Arc::strong_count(v) == 1 && Arc::strong_count(n) == 1);
+        match free.and_then(|i| self.recent.remove(i)) {
             Some((v, n)) => (
                 Arc::try_unwrap(v).map(|v| v.points).unwrap_or_default(),
                 Arc::try_unwrap(n).map(|n| n.normals).unwrap_or_default(),
             ),
             None => (Vec::new(), Vec::new()),
+        }
+    }
+
+    /// Keeps a frame's maps for their buffers (dropping the oldest past [`KEPT_MAPS`]).
+    fn keep(&mut self, maps: (Arc<VertexMap>, Arc<NormalMap>)) {
+        self.recent.push_back(maps);
+        while self.recent.len() > KEPT_MAPS {
+            self.recent.pop_front();
         }
     }
 }
@@ -389,7 +406,7 @@ impl Node for PostprocessNode {
         });
         outputs.put_arc("vertices", Arc::clone(&vertices))?;
         outputs.put_arc("normals", Arc::clone(&normals))?;
-        self.last = Some((vertices, normals));
+        self.keep((vertices, normals));
         outputs.put("metrics", m)?;
         Ok(Flow::Continue)
     }
@@ -402,7 +419,10 @@ pub fn build(params: Params, _: &BuildContext) -> Result<PostprocessNode, BuildE
         path: String::new(),
         message: m,
     })?;
-    Ok(PostprocessNode { params, last: None })
+    Ok(PostprocessNode {
+        params,
+        recent: Default::default(),
+    })
 }
 
 /// Registers `depth.postprocess`.
@@ -547,7 +567,7 @@ mod tests {
     fn map_buffers_come_back_only_when_nothing_else_holds_them() {
         let mut node = PostprocessNode {
             params: Params::default(),
-            last: None,
+            recent: Default::default(),
         };
         let maps = || {
             (
@@ -565,16 +585,27 @@ mod tests {
         };
         // A consumer still holds the last maps: their buffers are not taken.
         let (v, n) = maps();
-        node.last = Some((Arc::clone(&v), Arc::clone(&n)));
+        node.keep((Arc::clone(&v), Arc::clone(&n)));
         let (bv, bn) = node.recycled();
         assert!(bv.is_empty() && bn.is_empty());
         assert_eq!(v.points, vec![[1.0; 3]; 2], "the held maps are untouched");
-        // Once the frame is done, the next frame writes into the same memory.
-        let (v, n) = maps();
-        let (pv, pn) = (v.points.as_ptr(), n.normals.as_ptr());
-        node.last = Some((v, n));
+        // A later frame's maps nobody holds come back, while the held ones stay kept.
+        let (v2, n2) = maps();
+        let (pv, pn) = (v2.points.as_ptr(), n2.normals.as_ptr());
+        node.keep((v2, n2));
         let (bv, bn) = node.recycled();
         assert_eq!((bv.as_ptr(), bn.as_ptr()), (pv, pn));
-        assert!(node.last.is_none());
+        assert_eq!(node.recent.len(), 1);
+        // Once the first frame is done too, its buffers come back.
+        let (pv, pn) = (v.points.as_ptr(), n.normals.as_ptr());
+        drop((v, n));
+        let (bv, bn) = node.recycled();
+        assert_eq!((bv.as_ptr(), bn.as_ptr()), (pv, pn));
+        assert!(node.recent.is_empty());
+        // At most KEPT_MAPS frames are kept.
+        for _ in 0..KEPT_MAPS + 2 {
+            node.keep(maps());
+        }
+        assert_eq!(node.recent.len(), KEPT_MAPS);
     }
 }
