@@ -35,6 +35,32 @@ pub(crate) enum BenchCommand {
         #[arg(long)]
         out: Option<PathBuf>,
     },
+    /// `depth.postprocess`'s bilateral filter on a depth map: the median time per map (threads
+    /// as RAYON_NUM_THREADS says) and, with `--out`, the filtered map (benches/
+    /// postprocess_vs_opencv.py compares it with OpenCV's `bilateralFilter` in the same run).
+    Bilateral {
+        /// Depth map (PFM, mm, NaN invalid).
+        #[arg(long)]
+        depth: PathBuf,
+        /// Window radius, pixels (`smooth_radius`).
+        #[arg(long, default_value_t = 3)]
+        radius: usize,
+        /// Spatial sigma, pixels (`smooth_sigma_px`).
+        #[arg(long, default_value_t = 2.0)]
+        sigma_px: f32,
+        /// Depth sigma, mm (`smooth_sigma_mm`).
+        #[arg(long, default_value_t = 1.5)]
+        sigma_mm: f32,
+        /// Timed runs (the median is reported).
+        #[arg(long, default_value_t = 20, value_parser = count_usize)]
+        repeat: usize,
+        /// Write the filtered map here (PFM).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Write the figures as JSON here.
+        #[arg(long)]
+        json: Option<PathBuf>,
+    },
     /// SGM on the CPU: the median time per pair and of each stage (census, forward pass,
     /// backward pass with the selection, left-right check with median and speckles); threads as
     /// RAYON_NUM_THREADS says.
@@ -266,6 +292,35 @@ pub(crate) fn run(which: BenchCommand) -> anyhow::Result<()> {
             }
             if let Some(path) = out {
                 write_json(&path, &rows)?;
+            }
+            Ok(())
+        }
+        BenchCommand::Bilateral {
+            depth,
+            radius,
+            sigma_px,
+            sigma_mm,
+            repeat,
+            out,
+            json,
+        } => {
+            let r = misslam::bench::bilateral(&depth, radius, sigma_px, sigma_mm, repeat)
+                .map_err(anyhow::Error::msg)?;
+            out!(
+                "bilateral {}x{}, radius {radius}, sigma {sigma_px} px / {sigma_mm} mm, {} threads: {:.2} ms per map (median of {}, fastest {:.2}); {:.1} % valid",
+                r.width, r.height, r.threads, r.ms, r.runs, r.min_ms, r.valid_pct
+            );
+            if let Some(path) = out {
+                let map = misslam::framework::FloatMap {
+                    width: r.width,
+                    height: r.height,
+                    data: r.filtered.clone(),
+                };
+                misslam::framework::pfm::write_pfm(&path, &map)
+                    .with_context(|| format!("writing {}", path.display()))?;
+            }
+            if let Some(path) = json {
+                write_json(&path, &r)?;
             }
             Ok(())
         }

@@ -811,3 +811,91 @@ fn observability_study_prints_the_table_and_writes_json() {
     assert!(err.contains("--organs: unknown organ `spleen`"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn bilateral_bench_filters_the_map_as_post_processing_does() {
+    // A 40x30 slope with noise and a hole: the bench's output is the node's filter to the bit,
+    // its JSON says what ran, and bad input is named.
+    let dir = common::tmp_dir("bench-bilateral");
+    let (w, h) = (40u32, 30u32);
+    let mut s = 3u32;
+    let data: Vec<f32> = (0..w * h)
+        .map(|i| {
+            s = s.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            let (x, y) = (i % w, i / w);
+            if (10..14).contains(&x) && (5..9).contains(&y) {
+                f32::NAN
+            } else {
+                70.0 + 0.2 * x as f32 + (s >> 9) as f32 / (1u32 << 23) as f32
+            }
+        })
+        .collect();
+    let map = misslam::framework::FloatMap {
+        width: w,
+        height: h,
+        data: data.clone(),
+    };
+    let (src, out, json) = (dir.join("d.pfm"), dir.join("f.pfm"), dir.join("f.json"));
+    misslam::framework::pfm::write_pfm(&src, &map).unwrap();
+    let run = misslam()
+        .args([
+            "bench",
+            "bilateral",
+            "--repeat",
+            "2",
+            "--sigma-mm",
+            "1.0",
+            "--depth",
+        ])
+        .arg(&src)
+        .arg("--out")
+        .arg(&out)
+        .arg("--json")
+        .arg(&json)
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let got = misslam::framework::pfm::read_pfm(&out).unwrap();
+    let want =
+        misslam_depth_postprocess::maps::bilateral(&data, w as usize, h as usize, 3, 2.0, 1.0);
+    assert_eq!((got.width, got.height), (w, h));
+    for (i, (g, e)) in got.data.iter().zip(&want).enumerate() {
+        assert_eq!(g.to_bits(), e.to_bits(), "pixel {i}");
+    }
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(
+        (r["width"].as_u64(), r["runs"].as_u64()),
+        (Some(40), Some(2))
+    );
+    assert_eq!(r["sigma_mm"].as_f64(), Some(1.0));
+    let valid = r["valid_pct"].as_f64().unwrap();
+    assert!(
+        (valid - 100.0 * (1200.0 - 16.0) / 1200.0).abs() < 1e-9,
+        "{r}"
+    );
+    // A missing map and a bad sigma are named.
+    let err = |args: &[&str]| {
+        let o = misslam().args(args).output().unwrap();
+        assert!(!o.status.success());
+        String::from_utf8_lossy(&o.stderr).to_string()
+    };
+    let missing = dir.join("none.pfm");
+    let e = err(&["bench", "bilateral", "--depth", missing.to_str().unwrap()]);
+    assert!(e.contains("none.pfm"), "{e}");
+    let e = err(&[
+        "bench",
+        "bilateral",
+        "--sigma-mm=0",
+        "--depth",
+        src.to_str().unwrap(),
+    ]);
+    assert!(
+        e.contains("--sigma-mm") && e.contains("smooth_sigma_mm"),
+        "{e}"
+    );
+}

@@ -3,6 +3,7 @@
 mod ed;
 mod features;
 mod phantom;
+mod post;
 mod runtime;
 mod stereo;
 
@@ -12,6 +13,7 @@ use std::time::Instant;
 pub use ed::{ed_scaling, EdScalingParams, EdScalingRow};
 pub use features::{features, surf, FeaturesBench};
 pub use phantom::{phantom, PhantomRow};
+pub use post::{bilateral, BilateralBench};
 pub use runtime::{runtime_overhead, OverheadRow};
 pub use stereo::{
     disparity_parity, elas, random_dot_pair, sgm_cpu, sgm_gpu, ElasBench, SgmCpuBench, SgmGpuBench,
