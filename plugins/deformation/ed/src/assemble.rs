@@ -537,6 +537,19 @@ impl Couplings {
     }
 }
 
+/// The field's value at `p` and the direction of its row: the trilinear gradient, or the field's
+/// stored normal with [`FieldJacobian::FieldNormal`] (see [`FieldJacobian`]).
+pub(crate) fn sample_field(
+    field: &crate::DistanceField,
+    p: &Vector3<f64>,
+    params: &SolverParams,
+) -> Option<(f64, Vector3<f64>)> {
+    match params.field_jacobian {
+        FieldJacobian::FieldNormal => field.sample_normal(p),
+        FieldJacobian::Gradient | FieldJacobian::Normal => field.sample(p),
+    }
+}
+
 impl Terms {
     /// Each model point's and correspondence's terms at the current state (the warped points
     /// and the association of `pass`, run at that state); returns the pose block and gradient.
@@ -603,7 +616,7 @@ impl Terms {
                         rows.1 = 4;
                     }
                 }
-                if let Some((dv, grad)) = problem.field.and_then(|f| f.sample(&p)) {
+                if let Some((dv, grad)) = problem.field.and_then(|f| sample_field(f, &p, params)) {
                     let (rw, _) = params.robust.weight_cost(dv.abs(), c);
                     let grad = if normal_jac {
                         let n =

@@ -27,6 +27,11 @@ pub struct DistanceField {
     pub values: Vec<f32>,
     /// Truncation distance, mm.
     pub truncation: f64,
+    /// Per voxel, the mean of the normals n_i of the scan pixels its value averages, which is
+    /// the exact gradient of the voxel's own mean of n_i . (c - q_i) (NaN where the value is
+    /// unknown); empty when the field was built without them (see
+    /// [`DistanceField::from_maps_with_normals`] and [`DistanceField::sample_normal`]).
+    pub normals: Vec<[f32; 3]>,
 }
 
 impl DistanceField {
@@ -71,6 +76,7 @@ impl DistanceField {
             dims,
             values,
             truncation,
+            normals: Vec::new(),
         })
     }
 
@@ -156,6 +162,48 @@ impl DistanceField {
         window: u32,
         max_voxels: usize,
     ) -> Result<Self, String> {
+        Self::build_from_maps(
+            vertices,
+            normals,
+            k,
+            [voxel, truncation],
+            window,
+            max_voxels,
+            false,
+        )
+    }
+
+    /// [`Self::from_maps`], each voxel also holding the mean normal of the pixels its value
+    /// averages ([`DistanceField::normals`], for [`Self::sample_normal`]); the same values.
+    pub fn from_maps_with_normals(
+        vertices: &[[f32; 3]],
+        normals: &[[f32; 3]],
+        k: &Intrinsics,
+        voxel: f64,
+        truncation: f64,
+        window: u32,
+        max_voxels: usize,
+    ) -> Result<Self, String> {
+        Self::build_from_maps(
+            vertices,
+            normals,
+            k,
+            [voxel, truncation],
+            window,
+            max_voxels,
+            true,
+        )
+    }
+
+    fn build_from_maps(
+        vertices: &[[f32; 3]],
+        normals: &[[f32; 3]],
+        k: &Intrinsics,
+        [voxel, truncation]: [f64; 2],
+        window: u32,
+        max_voxels: usize,
+        with_normals: bool,
+    ) -> Result<Self, String> {
         Self::check_maps(vertices, normals, k)?;
         let (origin, dims) = Self::scan_box(vertices, normals, voxel, truncation, max_voxels)?;
         let q = ProjectiveField::new(origin, voxel, truncation, k, window);
@@ -164,11 +212,21 @@ impl DistanceField {
         // needs |c - q| <= 2 truncation, so |c_z - q_z| <= 2 truncation), the same values.
         let range = q.block_depth_range(vertices, normals);
         let reach = 2.0 * q.truncation * (1.0 + 1e-4) + 1e-4;
-        let mut values = vec![f32::NAN; dims[0] * dims[1] * dims[2]];
+        let total = dims[0] * dims[1] * dims[2];
+        let mut values = vec![f32::NAN; total];
+        let mut means = vec![[f32::NAN; 3]; if with_normals { total } else { 0 }];
+        let row_means: Vec<&mut [[f32; 3]]> = if with_normals {
+            means.chunks_mut(dims[0]).collect()
+        } else {
+            (0..dims[1] * dims[2])
+                .map(|_| <&mut [[f32; 3]]>::default())
+                .collect()
+        };
         values
             .par_chunks_mut(dims[0])
+            .zip(row_means)
             .enumerate()
-            .for_each(|(row, out)| {
+            .for_each(|(row, (out, out_n))| {
                 let (y, z) = (row % dims[1], row / dims[1]);
                 for (x, v) in out.iter_mut().enumerate() {
                     let ijk = [x as u32, y as u32, z as u32];
@@ -177,7 +235,11 @@ impl DistanceField {
                     };
                     let (lo, hi) = range[pv * k.width as usize + pu];
                     if c[2] >= lo - reach && c[2] <= hi + reach {
-                        *v = q.value(ijk, vertices, normals);
+                        if with_normals {
+                            (*v, out_n[x]) = q.value_and_normal(ijk, vertices, normals);
+                        } else {
+                            *v = q.value(ijk, vertices, normals);
+                        }
                     }
                 }
             });
@@ -187,11 +249,16 @@ impl DistanceField {
             dims,
             values,
             truncation,
+            normals: means,
         })
     }
 
-    /// Trilinear value and gradient at `p`, or `None` outside the volume or next to unknown voxels.
-    pub fn sample(&self, p: &Vector3<f64>) -> Option<(f64, Vector3<f64>)> {
+    /// The cell of the voxel lattice holding `p`: its lowest corner and `p`'s fractions along x,
+    /// y, z, or `None` outside the volume.
+    fn cell(&self, p: &Vector3<f64>) -> Option<([usize; 3], [f64; 3])> {
+        if self.dims.iter().any(|&d| d < 2) {
+            return None;
+        }
         let q = (p - self.origin) / self.voxel;
         let mut i = [0usize; 3];
         let mut f = [0f64; 3];
@@ -199,16 +266,49 @@ impl DistanceField {
             if q[a].is_nan() || q[a] < 0.0 || q[a] > (self.dims[a] - 1) as f64 {
                 return None;
             }
-            let fl = q[a].floor().min((self.dims[a].max(2) - 2) as f64);
+            let fl = q[a].floor().min((self.dims[a] - 2) as f64);
             i[a] = fl as usize;
             f[a] = q[a] - fl;
         }
-        if self.dims.iter().any(|&d| d < 2) {
+        Some((i, f))
+    }
+
+    /// Index of the voxel at corner (dx, dy, dz) of the cell at `i`.
+    fn corner(&self, i: [usize; 3], dx: usize, dy: usize, dz: usize) -> usize {
+        ((i[2] + dz) * self.dims[1] + i[1] + dy) * self.dims[0] + i[0] + dx
+    }
+
+    /// Trilinear value at `p` and the unit direction of the trilinear mean normals
+    /// ([`DistanceField::normals`]): the gradient of the voxels' own averages, smooth where the
+    /// finite differences of [`Self::sample`]'s gradient are bumpy (neighbouring voxels average
+    /// other pixels). `None` outside the volume, next to unknown voxels, or for a field built
+    /// without normals; a zero direction where the normals cancel.
+    pub fn sample_normal(&self, p: &Vector3<f64>) -> Option<(f64, Vector3<f64>)> {
+        if self.normals.len() != self.values.len() {
             return None;
         }
-        let at = |dx: usize, dy: usize, dz: usize| {
-            self.values[((i[2] + dz) * self.dims[1] + i[1] + dy) * self.dims[0] + i[0] + dx] as f64
-        };
+        let (v, _) = self.sample(p)?;
+        let (i, [fx, fy, fz]) = self.cell(p)?;
+        let mut n = Vector3::zeros();
+        for dz in 0..2 {
+            for dy in 0..2 {
+                for dx in 0..2 {
+                    let w = [1.0 - fx, fx][dx] * [1.0 - fy, fy][dy] * [1.0 - fz, fz][dz];
+                    let m = self.normals[self.corner(i, dx, dy, dz)];
+                    n += Vector3::new(m[0] as f64, m[1] as f64, m[2] as f64) * w;
+                }
+            }
+        }
+        if !n.iter().all(|c| c.is_finite()) {
+            return None;
+        }
+        Some((v, n.try_normalize(1e-12).unwrap_or_else(Vector3::zeros)))
+    }
+
+    /// Trilinear value and gradient at `p`, or `None` outside the volume or next to unknown voxels.
+    pub fn sample(&self, p: &Vector3<f64>) -> Option<(f64, Vector3<f64>)> {
+        let (i, f) = self.cell(p)?;
+        let at = |dx: usize, dy: usize, dz: usize| self.values[self.corner(i, dx, dy, dz)] as f64;
         let mut c = [[[0.0; 2]; 2]; 2];
         for (dz, cz) in c.iter_mut().enumerate() {
             for (dy, cy) in cz.iter_mut().enumerate() {
@@ -357,6 +457,47 @@ impl ProjectiveField {
         out
     }
 
+    /// [`Self::value`] and the mean of the normals n_i of the pixels it averages (NaN where
+    /// unknown): the same sums in the same order, so the same value to the bit.
+    #[inline]
+    pub fn value_and_normal(
+        &self,
+        ijk: [u32; 3],
+        vertices: &[[f32; 3]],
+        normals: &[[f32; 3]],
+    ) -> (f32, [f32; 3]) {
+        let unknown = (f32::NAN, [f32::NAN; 3]);
+        let Some((c, [u, v])) = self.project(ijk) else {
+            return unknown;
+        };
+        let (w, h) = (self.size[0] as i64, self.size[1] as i64);
+        let (u, v, r) = (u as i64, v as i64, self.window as i64);
+        let t = self.truncation;
+        let (mut sum, mut nsum, mut count) = (0f32, [0f32; 3], 0u32);
+        for y in (v - r).max(0)..=(v + r).min(h - 1) {
+            for x in (u - r).max(0)..=(u + r).min(w - 1) {
+                let i = (y * w + x) as usize;
+                let (q, n) = (vertices[i], normals[i]);
+                let d = [c[0] - q[0], c[1] - q[1], c[2] - q[2]];
+                let s = n[0] * d[0] + n[1] * d[1] + n[2] * d[2];
+                let r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+                if s.abs() <= t && r2 <= 4.0 * t * t {
+                    sum += s;
+                    for a in 0..3 {
+                        nsum[a] += n[a];
+                    }
+                    count += 1;
+                }
+            }
+        }
+        if count > 0 {
+            let k = count as f32;
+            (sum / k, nsum.map(|x| x / k))
+        } else {
+            unknown
+        }
+    }
+
     /// The value of voxel `ijk` (NaN unknown): the mean of n_i . (c - q_i) over the valid pixels
     /// i of the (2 window + 1)^2 block around c's projection (a pixel is valid with a finite point
     /// and normal, |n_i . (c - q_i)| <= truncation and |c - q_i| <= 2 truncation).
@@ -447,6 +588,58 @@ mod tests {
         let nan = vec![[f32::NAN; 3]; 80 * 60];
         let err = DistanceField::from_maps(&nan, &nan, &k, 0.5, 3.0, 0, 1000).unwrap_err();
         assert!(err.contains("no valid point"), "{err}");
+    }
+
+    #[test]
+    fn a_field_with_normals_holds_the_scan_normal_and_the_same_values() {
+        // The tilted plane of the test above, averaged over 5x5 pixels: the values to the bit of
+        // the field without normals, each known voxel's mean normal and the sampled direction
+        // the plane's, NaN exactly where the value is unknown; without normals, no direction.
+        let k = Intrinsics {
+            fx: 200.0,
+            fy: 200.0,
+            cx: 40.0,
+            cy: 30.0,
+            width: 80,
+            height: 60,
+        };
+        let (a, b, c0) = (0.3, 0.1, 60.0);
+        let depth: Vec<f32> = (0..80 * 60)
+            .map(|i| {
+                let (x, y) = (
+                    ((i % 80) as f64 - k.cx) / k.fx,
+                    ((i / 80) as f64 - k.cy) / k.fy,
+                );
+                (c0 / (1.0 - a * x - b * y)) as f32
+            })
+            .collect();
+        let (v, n) = crate::observe::scan_from_depth(&depth, &k, 5.0);
+        let plain = DistanceField::from_maps(&v, &n, &k, 0.5, 3.0, 2, 10_000_000).unwrap();
+        let f = DistanceField::from_maps_with_normals(&v, &n, &k, 0.5, 3.0, 2, 10_000_000).unwrap();
+        let bits = |f: &DistanceField| f.values.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&f), bits(&plain));
+        assert_eq!(f.normals.len(), f.values.len());
+        let nrm = Vector3::new(a, b, -1.0).normalize();
+        let mut known = 0;
+        for (val, m) in f.values.iter().zip(&f.normals) {
+            assert_eq!(val.is_nan(), m[0].is_nan());
+            if val.is_finite() {
+                let m = Vector3::new(m[0] as f64, m[1] as f64, m[2] as f64);
+                assert!((m - nrm).norm() < 1e-4, "{m:?}");
+                known += 1;
+            }
+        }
+        assert!(known > 1000, "{known}");
+        for (x, y, off) in [(0.0, 0.0, 0.0), (2.0, -1.5, 1.2), (-3.0, 2.0, -2.0)] {
+            let p = Vector3::new(x, y, c0 + a * x + b * y) + nrm * off;
+            let (d, g) = f.sample_normal(&p).unwrap();
+            assert_eq!(d, f.sample(&p).unwrap().0);
+            assert!(
+                (g - nrm).norm() < 1e-6 && (g.norm() - 1.0).abs() < 1e-12,
+                "{g:?}"
+            );
+            assert!(plain.sample_normal(&p).is_none());
+        }
     }
 
     #[test]

@@ -293,6 +293,15 @@ pub enum FieldJacobian {
     /// drift 0.62 mm against 2.48 with `gradient`.
     #[default]
     Normal,
+    /// The scan's own normal as the field stores it: the unit direction of the trilinear mean
+    /// of each voxel's averaged pixel normals ([`crate::DistanceField::sample_normal`]; the field
+    /// must be built with them, [`crate::DistanceField::from_maps_with_normals`]). Each voxel's
+    /// value is a mean of n_i . (c - q_i) whose exact gradient is that mean normal, so this is
+    /// the field's gradient without the bumps its finite differences take from neighbouring
+    /// voxels averaging other pixels; like back-projection's point-to-plane row, the direction
+    /// comes from the scan. Phantom liver, 8 seeds of 120 frames (session 38): whole template
+    /// 0.2413 mm against `normal`'s 0.2442, back-projection 0.2406.
+    FieldNormal,
 }
 
 /// Nonlinear least-squares method.

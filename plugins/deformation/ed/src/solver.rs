@@ -414,9 +414,9 @@ impl Solver {
                 for i in 0..model.points.len() {
                     let vw = graph.warp_point(&model.points[i], &model.bindings[i]);
                     let p = (cfw * misslam_framework::nalgebra::Point3::from(vw)).coords;
-                    if let Some((dv, grad)) = field.sample(&p) {
+                    if let Some((dv, grad)) = crate::assemble::sample_field(field, &p, params) {
                         let grad = match params.field_jacobian {
-                            FieldJacobian::Gradient => grad,
+                            FieldJacobian::Gradient | FieldJacobian::FieldNormal => grad,
                             FieldJacobian::Normal => {
                                 let n = cfw.rotation
                                     * graph.warp_normal(&model.normals[i], &model.bindings[i], &nm);
@@ -623,6 +623,16 @@ impl Solver {
                 problem.model.points.len(),
                 problem.model.bindings.len()
             ));
+        }
+        if let Some(field) = problem.field {
+            if params.field_jacobian == FieldJacobian::FieldNormal
+                && field.normals.len() != field.values.len()
+            {
+                return Err(
+                    "`field_jacobian = \"field_normal\"` needs a distance field built with its normals (DistanceField::from_maps_with_normals)"
+                        .into(),
+                );
+            }
         }
         if let Some(scan) = &problem.scan {
             let n = (scan.intrinsics.width * scan.intrinsics.height) as usize;

@@ -18,6 +18,8 @@ const UNKNOWN: f32 = 3.0e38;
 /// The compiled DFF kernel.
 pub struct DffKernel {
     pipeline: wgpu::ComputePipeline,
+    /// `main_normals`: the values and the mean normals.
+    with_normals: wgpu::ComputePipeline,
 }
 
 /// Milliseconds of one GPU field build.
@@ -34,11 +36,13 @@ impl DffKernel {
     pub fn new(ctx: &GpuContext) -> Self {
         DffKernel {
             pipeline: ctx.compute_pipeline("dff", DFF_WGSL, "main"),
+            with_normals: ctx.compute_pipeline("dff normals", DFF_WGSL, "main_normals"),
         }
     }
 
     /// The field of a scan's vertex and normal maps, as [`DistanceField::from_maps`] builds it on
-    /// the CPU (same box, same arguments and errors).
+    /// the CPU (same box, same arguments and errors), or with `with_normals` as
+    /// [`DistanceField::from_maps_with_normals`] does.
     #[allow(clippy::too_many_arguments)]
     pub fn build(
         &self,
@@ -50,6 +54,7 @@ impl DffKernel {
         truncation: f64,
         window: u32,
         max_voxels: usize,
+        with_normals: bool,
     ) -> Result<(DistanceField, DffTiming), String> {
         let t0 = std::time::Instant::now();
         DistanceField::check_maps(vertices, normals, k)?;
@@ -58,7 +63,7 @@ impl DffKernel {
             DistanceField::scan_box(vertices, normals, voxel, truncation, max_voxels)?;
         let total = dims[0] * dims[1] * dims[2];
         let limit = ctx.device.limits().max_storage_buffer_binding_size as usize;
-        if total * 4 > limit || w * h * 16 > limit {
+        if total * if with_normals { 12 } else { 4 } > limit || w * h * 16 > limit {
             return Err(format!(
                 "the field ({total} voxels) or the maps exceed the GPU's storage buffer limit of {limit} bytes: use field.device = \"cpu\" or a larger voxel"
             ));
@@ -125,12 +130,28 @@ impl DffKernel {
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
             mapped_at_creation: false,
         });
-        ctx.dispatch(
-            &self.pipeline,
-            "dff",
-            &[&params_buf, &pts_buf, &nrm_buf, &out_buf],
-            (gx, gy, 1),
-        );
+        let normals_buf = with_normals.then(|| {
+            dev.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("dff field normals"),
+                size: out_size * 3,
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: false,
+            })
+        });
+        match &normals_buf {
+            Some(nb) => ctx.dispatch(
+                &self.with_normals,
+                "dff normals",
+                &[&params_buf, &pts_buf, &nrm_buf, &out_buf, nb],
+                (gx, gy, 1),
+            ),
+            None => ctx.dispatch(
+                &self.pipeline,
+                "dff",
+                &[&params_buf, &pts_buf, &nrm_buf, &out_buf],
+                (gx, gy, 1),
+            ),
+        }
         let bytes = ctx
             .read_back(&out_buf, out_size)
             .map_err(|e: GpuError| e.to_string())?;
@@ -145,6 +166,29 @@ impl DffKernel {
                 }
             })
             .collect();
+        // The mean normals, NaN where the value is unknown (as on the CPU).
+        let normals = match &normals_buf {
+            Some(nb) => {
+                let bytes = ctx
+                    .read_back(nb, out_size * 3)
+                    .map_err(|e: GpuError| e.to_string())?;
+                bytes
+                    .chunks_exact(12)
+                    .zip(&values)
+                    .map(|(b, v)| {
+                        let c = |k: usize| {
+                            f32::from_le_bytes([b[4 * k], b[4 * k + 1], b[4 * k + 2], b[4 * k + 3]])
+                        };
+                        if v.is_nan() {
+                            [f32::NAN; 3]
+                        } else {
+                            [c(0), c(1), c(2)]
+                        }
+                    })
+                    .collect()
+            }
+            None => Vec::new(),
+        };
         let gpu_ms = t1.elapsed().as_secs_f64() * 1e3;
         Ok((
             DistanceField {
@@ -153,6 +197,7 @@ impl DffKernel {
                 dims,
                 values,
                 truncation,
+                normals,
             },
             DffTiming { prepare_ms, gpu_ms },
         ))

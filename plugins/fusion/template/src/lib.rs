@@ -29,7 +29,7 @@ use misslam_deformation_ed::graph::{Binding, EdGraph};
 use misslam_deformation_ed::observe::{
     color_at, color_quality, scan_from_depth_into, template_points, visible_points,
 };
-use misslam_deformation_ed::problem::{Intrinsics, ModelSubset, Problem, Scan};
+use misslam_deformation_ed::problem::{FieldJacobian, Intrinsics, ModelSubset, Problem, Scan};
 use misslam_deformation_ed::DistanceField;
 use misslam_framework::geometry::arr3;
 use misslam_framework::nalgebra::{Isometry3, Point3, Vector3};
@@ -370,6 +370,13 @@ impl TemplateNode {
                 DataTerm::Dff => {
                     let t = Instant::now();
                     let fp = &self.p.field;
+                    // The field's normals when the solve's field rows take them.
+                    let with_normals = self.p.solver.field_jacobian == FieldJacobian::FieldNormal;
+                    let from_maps = if with_normals {
+                        DistanceField::from_maps_with_normals
+                    } else {
+                        DistanceField::from_maps
+                    };
                     let f = match &self.gpu {
                         Some((ctx, kernel)) => kernel
                             .build(
@@ -381,9 +388,10 @@ impl TemplateNode {
                                 fp.truncation_mm,
                                 fp.window_px,
                                 fp.max_voxels,
+                                with_normals,
                             )
                             .map(|(f, _)| f),
-                        None => DistanceField::from_maps(
+                        None => from_maps(
                             &self.vertices,
                             &self.scan_normals,
                             &k,
