@@ -458,7 +458,9 @@ impl ProjectiveField {
     }
 
     /// [`Self::value`] and the mean of the normals n_i of the pixels it averages (NaN where
-    /// unknown): the same sums in the same order, so the same value to the bit.
+    /// unknown): the same sums in the same order, so the same value to the bit. (`value` keeps
+    /// its own loop: written as this one's first half, the field without normals took about
+    /// 15 % longer on the 2-core machine.)
     #[inline]
     pub fn value_and_normal(
         &self,
