@@ -3,6 +3,13 @@
 
 use std::path::{Path, PathBuf};
 
+/// The `misslam` binary, run from the checkout's root.
+pub fn misslam() -> std::process::Command {
+    let mut c = std::process::Command::new(env!("CARGO_BIN_EXE_misslam"));
+    c.current_dir(env!("CARGO_MANIFEST_DIR"));
+    c
+}
+
 /// `../shared/data` beside the checkout, when present.
 pub fn shared_data() -> Option<PathBuf> {
     let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data");
