@@ -287,8 +287,9 @@ impl DistanceField {
         if self.normals.len() != self.values.len() {
             return None;
         }
-        let (v, _) = self.sample(p)?;
-        let (i, [fx, fy, fz]) = self.cell(p)?;
+        let (i, f) = self.cell(p)?;
+        let v = trilinear(&self.corners(i)?, f);
+        let [fx, fy, fz] = f;
         let mut n = Vector3::zeros();
         for dz in 0..2 {
             for dy in 0..2 {
@@ -305,39 +306,30 @@ impl DistanceField {
         Some((v, n.try_normalize(1e-12).unwrap_or_else(Vector3::zeros)))
     }
 
-    /// Trilinear value and gradient at `p`, or `None` outside the volume or next to unknown voxels.
-    pub fn sample(&self, p: &Vector3<f64>) -> Option<(f64, Vector3<f64>)> {
-        let (i, f) = self.cell(p)?;
-        let at = |dx: usize, dy: usize, dz: usize| self.values[self.corner(i, dx, dy, dz)] as f64;
+    /// The values at the corners of the cell at `i` (`[dz][dy][dx]`), or `None` when one is
+    /// unknown.
+    fn corners(&self, i: [usize; 3]) -> Option<[[[f64; 2]; 2]; 2]> {
         let mut c = [[[0.0; 2]; 2]; 2];
         for (dz, cz) in c.iter_mut().enumerate() {
             for (dy, cy) in cz.iter_mut().enumerate() {
                 for (dx, v) in cy.iter_mut().enumerate() {
-                    *v = at(dx, dy, dz);
+                    *v = self.values[self.corner(i, dx, dy, dz)] as f64;
                     if !v.is_finite() {
                         return None;
                     }
                 }
             }
         }
+        Some(c)
+    }
+
+    /// Trilinear value and gradient at `p`, or `None` outside the volume or next to unknown voxels.
+    pub fn sample(&self, p: &Vector3<f64>) -> Option<(f64, Vector3<f64>)> {
+        let (i, f) = self.cell(p)?;
+        let c = self.corners(i)?;
         let lerp = |a: f64, b: f64, t: f64| a + (b - a) * t;
         let (fx, fy, fz) = (f[0], f[1], f[2]);
-        let val = |c: &[[[f64; 2]; 2]; 2], fx: f64, fy: f64, fz: f64| {
-            lerp(
-                lerp(
-                    lerp(c[0][0][0], c[0][0][1], fx),
-                    lerp(c[0][1][0], c[0][1][1], fx),
-                    fy,
-                ),
-                lerp(
-                    lerp(c[1][0][0], c[1][0][1], fx),
-                    lerp(c[1][1][0], c[1][1][1], fx),
-                    fy,
-                ),
-                fz,
-            )
-        };
-        let v = val(&c, fx, fy, fz);
+        let v = trilinear(&c, f);
         // Exact derivatives of the trilinear interpolant.
         let gx = lerp(
             lerp(c[0][0][1] - c[0][0][0], c[0][1][1] - c[0][1][0], fy),
@@ -356,6 +348,24 @@ impl DistanceField {
         );
         Some((v, Vector3::new(gx, gy, gz) / self.voxel))
     }
+}
+
+/// The trilinear interpolant of corner values `c` (`[dz][dy][dx]`) at fractions `f` (x, y, z).
+fn trilinear(c: &[[[f64; 2]; 2]; 2], [fx, fy, fz]: [f64; 3]) -> f64 {
+    let lerp = |a: f64, b: f64, t: f64| a + (b - a) * t;
+    lerp(
+        lerp(
+            lerp(c[0][0][0], c[0][0][1], fx),
+            lerp(c[0][1][0], c[0][1][1], fx),
+            fy,
+        ),
+        lerp(
+            lerp(c[1][0][0], c[1][0][1], fx),
+            lerp(c[1][1][0], c[1][1][1], fx),
+            fy,
+        ),
+        fz,
+    )
 }
 
 /// The per-voxel arithmetic of [`DistanceField::from_maps`], in f32 as on the GPU.
