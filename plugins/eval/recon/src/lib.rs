@@ -325,7 +325,7 @@ impl Node for EvalRecon {
             };
             let cfw = e.world_from_camera.inverse();
             let camera: Vec<V3> = positions
-                .iter()
+                .par_iter()
                 .map(|p| {
                     let q = cfw * Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
                     [q.x as f32, q.y as f32, q.z as f32]
@@ -522,6 +522,21 @@ mod tests {
             .unwrap();
         let want = (0.2f64.powi(2) + 0.15f64.powi(2)).sqrt() / 2.0;
         assert!((m - want).abs() < 1e-5, "{m} vs {want}");
+        // Frame 3: surfel 4, first seen on frame 2, slid 1 px (0.1 mm); a surfel with a large
+        // id is new. Frame 4: that one slid 3 px, surfel 4 is back where it started.
+        let big = u64::MAX - 7;
+        let f3 = [at(8.0, 7.0, 50.0), at(20.0, 20.0, 50.0)];
+        let m = d
+            .frame(&f3, &[4, big], &depth, &rest, 1.0)
+            .unwrap()
+            .unwrap();
+        assert!((m - 0.1).abs() < 1e-5, "{m}");
+        let f4 = [at(7.0, 7.0, 50.0), at(23.0, 20.0, 50.0)];
+        let m = d
+            .frame(&f4, &[4, big], &depth, &rest, 1.0)
+            .unwrap()
+            .unwrap();
+        assert!((m - 0.15).abs() < 1e-5, "{m}");
         // Ids that do not match the surfels, and maps of another size, are errors.
         assert!(d.frame(&f2, &[1], &depth, &rest, 1.0).is_err());
         let small = VertexMap {

@@ -5,12 +5,37 @@
 use crate::{bilinear, dot, sub, V3};
 use misslam_framework::nalgebra::{Isometry3, Point3};
 use misslam_framework::{DepthMap, Mesh, VertexMap};
+use rayon::prelude::*;
+use std::collections::HashMap;
+use std::hash::{BuildHasherDefault, Hasher};
+
+/// A hasher for the ids of surfels and vertices (counters and indices, not chosen by an
+/// adversary): a multiply by an odd constant, which maps consecutive ids to distinct buckets.
+/// The standard SipHash cost about 100 ns a lookup, most of [`Drift::frame`]'s time.
+#[derive(Default)]
+struct IdHash(u64);
+
+impl Hasher for IdHash {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.write_u64(u64::from(b));
+        }
+    }
+
+    fn write_u64(&mut self, id: u64) {
+        self.0 = (self.0.rotate_left(5) ^ id).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+    }
+}
 
 /// The material drift of surfels followed by id (see the module doc).
 #[derive(Default)]
 pub struct Drift {
     /// The rest-shape point under each surfel when first scored.
-    first: std::collections::HashMap<u64, V3>,
+    first: HashMap<u64, V3, BuildHasherDefault<IdHash>>,
 }
 
 impl Drift {
@@ -43,32 +68,45 @@ impl Drift {
             ));
         }
         let c = &depth.calib;
+        // Each surfel's rest-shape point (in parallel, reading the map of first points only);
+        // then, in surfel order, the drift of those scored before and the first point of the
+        // others.
+        let first = &self.first;
+        let found: Vec<Option<(V3, Option<f32>)>> = camera
+            .par_iter()
+            .zip(ids)
+            .map(|(p, id)| {
+                if p[2].is_nan() || p[2] <= 0.0 {
+                    return None;
+                }
+                let u = (c.fx * p[0] as f64 / p[2] as f64 + c.cx) as f32;
+                let v = (c.fy * p[1] as f64 / p[2] as f64 + c.cy) as f32;
+                if !(u >= 0.0 && v >= 0.0 && (u as usize) + 1 < w && (v as usize) + 1 < h) {
+                    return None;
+                }
+                let z = depth.map.data[v.round() as usize * w + u.round() as usize];
+                let gap = (p[2] - z).abs();
+                if gap.is_nan() || gap > max_gap {
+                    return None;
+                }
+                let r = bilinear(&rest.points, w, u, v)?;
+                Some((
+                    r,
+                    first.get(id).map(|r0| dot(sub(r, *r0), sub(r, *r0)).sqrt()),
+                ))
+            })
+            .collect();
         let (mut sum, mut n) = (0.0f64, 0usize);
-        for (p, id) in camera.iter().zip(ids) {
-            if p[2].is_nan() || p[2] <= 0.0 {
-                continue;
-            }
-            let u = (c.fx * p[0] as f64 / p[2] as f64 + c.cx) as f32;
-            let v = (c.fy * p[1] as f64 / p[2] as f64 + c.cy) as f32;
-            if !(u >= 0.0 && v >= 0.0 && (u as usize) + 1 < w && (v as usize) + 1 < h) {
-                continue;
-            }
-            let z = depth.map.data[v.round() as usize * w + u.round() as usize];
-            let gap = (p[2] - z).abs();
-            if gap.is_nan() || gap > max_gap {
-                continue;
-            }
-            let Some(r) = bilinear(&rest.points, w, u, v) else {
-                continue;
-            };
-            match self.first.get(id) {
-                Some(r0) => {
-                    sum += dot(sub(r, *r0), sub(r, *r0)).sqrt() as f64;
+        for (f, id) in found.into_iter().zip(ids) {
+            match f {
+                Some((_, Some(d))) => {
+                    sum += d as f64;
                     n += 1;
                 }
-                None => {
+                Some((r, None)) => {
                     self.first.insert(*id, r);
                 }
+                None => {}
             }
         }
         Ok((n > 0).then(|| sum / n as f64))
