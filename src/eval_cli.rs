@@ -25,6 +25,8 @@ pub struct FrameRow {
     pub bad2_valid_pct: f64,
     /// Mean absolute depth error, mm.
     pub mae_mm: f64,
+    /// Mean signed depth error (estimate minus GT), mm.
+    pub bias_mm: f64,
     /// % of GT pixels estimated.
     pub density_pct: f64,
 }
@@ -84,6 +86,7 @@ pub fn eval_depth(
             bad2_pct: s.bad2_pct,
             bad2_valid_pct: s.bad2_valid_pct,
             mae_mm: s.mae_mm,
+            bias_mm: s.bias_mm,
             density_pct: s.density_pct,
         });
     }
@@ -99,6 +102,7 @@ pub fn summary(rows: &[FrameRow]) -> std::collections::BTreeMap<String, f64> {
             ("depth.bad2_pct".to_owned(), r.bad2_pct),
             ("depth.bad2_valid_pct".to_owned(), r.bad2_valid_pct),
             ("depth.mae_mm".to_owned(), r.mae_mm),
+            ("depth.bias_mm".to_owned(), r.bias_mm),
             ("depth.density_pct".to_owned(), r.density_pct),
         ]);
     }

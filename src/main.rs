@@ -357,22 +357,24 @@ fn run(command: Command) -> anyhow::Result<()> {
             let rows = misslam::eval_cli::eval_depth(&est, &dataset, format, &params)
                 .map_err(anyhow::Error::msg)?;
             out!(
-                "{:>6} {:>8} {:>8} {:>8} {:>9} {:>9}",
+                "{:>6} {:>8} {:>8} {:>8} {:>9} {:>9} {:>9}",
                 "frame",
                 "bad1 %",
                 "bad2 %",
                 "bad2v %",
                 "MAE mm",
+                "bias mm",
                 "density %"
             );
             for r in &rows {
                 out!(
-                    "{:>6} {:>8.2} {:>8.2} {:>8.2} {:>9.3} {:>9.1}",
+                    "{:>6} {:>8.2} {:>8.2} {:>8.2} {:>9.3} {:>+9.3} {:>9.1}",
                     r.frame,
                     r.bad1_pct,
                     r.bad2_pct,
                     r.bad2_valid_pct,
                     r.mae_mm,
+                    r.bias_mm,
                     r.density_pct
                 );
             }

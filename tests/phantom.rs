@@ -178,6 +178,9 @@ fn eval_depth_command_scores_a_known_perturbation_exactly() {
     .unwrap();
     assert_eq!(rows.len(), 2);
     assert!((rows[0].mae_mm - 1.0).abs() < 1e-4, "{}", rows[0].mae_mm);
+    // 1 mm too far everywhere: a bias of +1 mm; exact: none.
+    assert!((rows[0].bias_mm - 1.0).abs() < 1e-4, "{}", rows[0].bias_mm);
+    assert_eq!(rows[1].bias_mm, 0.0);
     assert_eq!(rows[0].density_pct, 100.0);
     assert_eq!(
         (rows[1].mae_mm, rows[1].density_pct, rows[1].bad2_pct),

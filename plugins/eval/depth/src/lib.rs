@@ -6,6 +6,7 @@
 //! | `depth.bad1_pct`, `depth.bad2_pct` | % of evaluated GT pixels whose disparity error exceeds 1 / 2 px; a pixel without an estimate counts as bad |
 //! | `depth.bad2_valid_pct` | the same over pixels that have an estimate only |
 //! | `depth.mae_mm` | mean absolute depth error over pixels with an estimate, mm |
+//! | `depth.bias_mm` | mean signed depth error (estimate minus GT) over the same pixels, mm: positive when the estimate lies behind the true surface |
 //! | `depth.density_pct` | % of evaluated GT pixels that have an estimate |
 //!
 //! Evaluated pixels: GT depth finite and within `[min_depth_mm, max_depth_mm]`. Disparities of
@@ -56,6 +57,10 @@ pub struct DepthScores {
     pub bad2_valid_pct: f64,
     /// Mean absolute depth error over estimated pixels, mm.
     pub mae_mm: f64,
+    /// Mean signed depth error (estimate minus GT) over estimated pixels, mm: a systematic
+    /// offset of the method (a calibration's baseline or principal point off, a matcher's
+    /// sub-pixel bias) shows here while `mae_mm` mixes it with the noise.
+    pub bias_mm: f64,
     /// % of evaluated pixels with an estimate.
     pub density_pct: f64,
 }
@@ -71,7 +76,7 @@ pub fn score(est: &DepthMap, gt: &DepthMap, p: &Params) -> Result<DepthScores, S
     let c = &gt.calib;
     let (mut evaluated, mut estimated, mut bad1, mut bad2, mut bad2_valid) =
         (0usize, 0usize, 0usize, 0usize, 0usize);
-    let mut abs_sum = 0.0f64;
+    let (mut abs_sum, mut signed_sum) = (0.0f64, 0.0f64);
     for (&z, &g) in est.map.data.iter().zip(&gt.map.data) {
         if !(g.is_finite() && g >= p.min_depth_mm && g <= p.max_depth_mm) {
             continue;
@@ -84,6 +89,7 @@ pub fn score(est: &DepthMap, gt: &DepthMap, p: &Params) -> Result<DepthScores, S
         }
         estimated += 1;
         abs_sum += (z as f64 - g as f64).abs();
+        signed_sum += z as f64 - g as f64;
         let err = (c.disparity_from_depth(z) - c.disparity_from_depth(g)).abs();
         if err > 1.0 {
             bad1 += 1;
@@ -111,6 +117,11 @@ pub fn score(est: &DepthMap, gt: &DepthMap, p: &Params) -> Result<DepthScores, S
         } else {
             abs_sum / estimated as f64
         },
+        bias_mm: if estimated == 0 {
+            f64::NAN
+        } else {
+            signed_sum / estimated as f64
+        },
         density_pct: pct(estimated, evaluated),
     })
 }
@@ -122,13 +133,14 @@ pub struct EvalDepth {
 }
 
 impl EvalDepth {
-    fn keys(&self, s: &DepthScores) -> [(String, f64); 5] {
+    fn keys(&self, s: &DepthScores) -> [(String, f64); 6] {
         let k = |name: &str| format!("{}.{name}", self.params.prefix);
         [
             (k("bad1_pct"), s.bad1_pct),
             (k("bad2_pct"), s.bad2_pct),
             (k("bad2_valid_pct"), s.bad2_valid_pct),
             (k("mae_mm"), s.mae_mm),
+            (k("bias_mm"), s.bias_mm),
             (k("density_pct"), s.density_pct),
         ]
     }
@@ -254,6 +266,15 @@ mod tests {
             "{} vs {want_mae}",
             s.mae_mm
         );
+        // The signed mean: the far estimates (+1 mm, 1.5 px short) against the near ones.
+        let want_bias = (4.0 * 1.0 + 4.0 * (3500.0f64 / 33.5 - 100.0)
+            - 2.0 * (100.0 - 3500.0f64 / 38.0))
+            / 14.0;
+        assert!(
+            (s.bias_mm - want_bias).abs() < 1e-4,
+            "{} vs {want_bias}",
+            s.bias_mm
+        );
     }
 
     #[test]
@@ -272,6 +293,8 @@ mod tests {
         .unwrap();
         assert_eq!(s.evaluated, 14);
         assert!((s.mae_mm - 10.0).abs() < 1e-6);
+        // Every estimate 10 mm nearer than the GT: in front, a negative bias.
+        assert!((s.bias_mm + 10.0).abs() < 1e-6);
         let e = score(
             &DepthMap {
                 map: FloatMap {
@@ -293,8 +316,8 @@ mod tests {
         let gt = map((0..16).map(|i| 60.0 + i as f32).collect());
         let s = score(&gt, &gt, &Params::default()).unwrap();
         assert_eq!(
-            (s.bad1_pct, s.bad2_pct, s.mae_mm, s.density_pct),
-            (0.0, 0.0, 0.0, 100.0)
+            (s.bad1_pct, s.bad2_pct, s.mae_mm, s.bias_mm, s.density_pct),
+            (0.0, 0.0, 0.0, 0.0, 100.0)
         );
     }
 }
