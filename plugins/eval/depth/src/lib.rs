@@ -99,6 +99,14 @@ pub fn score(est: &DepthMap, gt: &DepthMap, p: &Params) -> Result<DepthScores, S
             bad2_valid += 1;
         }
     }
+    // A mean over the pixels with an estimate (NaN without any).
+    let per_estimated = |sum: f64| {
+        if estimated == 0 {
+            f64::NAN
+        } else {
+            sum / estimated as f64
+        }
+    };
     let pct = |n: usize, d: usize| {
         if d == 0 {
             f64::NAN
@@ -112,16 +120,8 @@ pub fn score(est: &DepthMap, gt: &DepthMap, p: &Params) -> Result<DepthScores, S
         bad1_pct: pct(bad1, evaluated),
         bad2_pct: pct(bad2, evaluated),
         bad2_valid_pct: pct(bad2_valid, estimated),
-        mae_mm: if estimated == 0 {
-            f64::NAN
-        } else {
-            abs_sum / estimated as f64
-        },
-        bias_mm: if estimated == 0 {
-            f64::NAN
-        } else {
-            signed_sum / estimated as f64
-        },
+        mae_mm: per_estimated(abs_sum),
+        bias_mm: per_estimated(signed_sum),
         density_pct: pct(estimated, evaluated),
     })
 }

@@ -40,7 +40,8 @@ pub struct Drift {
 
 impl Drift {
     /// Scores one frame: `camera` the surfels in the camera frame (scope-relative), `ids`
-    /// theirs, the true depth and rest-shape points of the view. Returns the mean drift over the
+    /// theirs (each once a frame, as a model's or a mesh's are), the true depth and rest-shape
+    /// points of the view. Returns the mean drift over the
     /// surfels scored before (None when there are none yet).
     pub fn frame(
         &mut self,
