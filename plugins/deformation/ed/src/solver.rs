@@ -53,8 +53,9 @@ pub struct Info {
     pub ms_assemble: f64,
     /// Numeric factorisation and triangular solves, ms.
     pub ms_factor: f64,
-    /// The pattern key, the symbolic factorisation when the pattern changed, and the zeroing of
-    /// the system before each assembly, ms.
+    /// The pattern key, the layout and its factor structures (the symbolic factorisation) when
+    /// the pattern changed, and the zeroing of the system before each assembly, ms. The factor
+    /// structures are built beside the first assembly: their time is in `ms_assemble` too.
     pub ms_prepare: f64,
     /// Whole solve, ms.
     pub ms_total: f64,
@@ -650,16 +651,17 @@ impl Solver {
         let tp = Instant::now();
         self.set_motion_reference(graph, problem, set, params);
         // The first pass (the association at the start) and the other terms' starting cost need
-        // no system: they run beside the pattern key and the system's layout, whose symbolic
-        // factorisation (when the pattern changed) is serial. Each side reports its own time, so
-        // the two overlap in `Info`.
+        // no system: they run beside the pattern key and the system's layout. A new layout's
+        // factor structures (the elimination plan, the scalar layouts and the symbolic
+        // factorisation, serial) are built later, beside the first assembly, which needs the
+        // layout only. Each side reports its own time, so the two overlap in `Info`.
         let mut cur = std::mem::take(&mut self.cur);
         let (system, full) = (&mut self.system, self.full_factorisation);
         let motion_ref = &self.motion_ref;
         let ((key, prepared), (other, ms_pass)) = rayon::join(
             || {
                 let key = pattern_key(graph, problem, set, full);
-                let r = system.prepare(graph.len(), &key);
+                let r = system.prepare_deferred(graph.len(), &key);
                 (key, (r, tp.elapsed().as_secs_f64() * 1e3))
             },
             || {
@@ -674,7 +676,7 @@ impl Solver {
             },
         );
         self.cur = cur;
-        prepared.0?;
+        let mut factor_job = prepared.0?;
         info.ms_prepare += prepared.1;
         if set.data {
             self.data.invalidate();
@@ -687,11 +689,14 @@ impl Solver {
             Method::LevenbergMarquardt => params.initial_lambda,
         };
         let mut reuses_left = 0;
-        for _ in 0..params.max_iterations {
+        for iteration in 0..params.max_iterations {
             info.iterations += 1;
-            let tp = Instant::now();
-            self.system.prepare(graph.len(), &key)?;
-            info.ms_prepare += tp.elapsed().as_secs_f64() * 1e3;
+            // The first iteration's system was laid out and zeroed beside the first pass.
+            if iteration > 0 {
+                let tp = Instant::now();
+                self.system.prepare(graph.len(), &key)?;
+                info.ms_prepare += tp.elapsed().as_secs_f64() * 1e3;
+            }
             // With the factorisation kept from the iteration before, the first attempt needs the
             // gradient only (the blocks are assembled if that step is rejected).
             let mut grad_only = reuses_left > 0 && self.system.is_factored();
@@ -701,7 +706,20 @@ impl Solver {
             } else {
                 Assembly::Full
             };
-            self.assemble(graph, problem, pose, set, params, mode);
+            if let Some(job) = factor_job.take() {
+                // A new layout: its factor structures beside the first assembly.
+                let (built, ()) = rayon::join(
+                    move || {
+                        let tp = Instant::now();
+                        (job.build(), tp.elapsed().as_secs_f64() * 1e3)
+                    },
+                    || self.assemble(graph, problem, pose, set, params, mode),
+                );
+                info.ms_prepare += built.1;
+                self.system.install(built.0)?;
+            } else {
+                self.assemble(graph, problem, pose, set, params, mode);
+            }
             info.ms_assemble += tb.elapsed().as_secs_f64() * 1e3;
             let pose0 = *pose;
             self.saved.clear();

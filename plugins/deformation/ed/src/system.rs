@@ -25,7 +25,9 @@
 //! faer's analysis took about half of a new pattern's layout): [`block_etree`] computes them, and
 //! faer's supernodal analysis takes them. The numeric factorisation reads the lower triangle,
 //! copied into a layout made once per pattern (faer would transpose the upper one at every
-//! factorisation).
+//! factorisation). A new pattern's layout (what assembly writes) and its factor structures (the
+//! elimination plan, the scalar layouts, the supernodal analysis: a [`FactorJob`]) are built
+//! apart, so that the solver builds the second beside the first assembly.
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::sparse::linalg::cholesky::simplicial::EliminationTreeRef;
@@ -139,6 +141,9 @@ impl PatternKey {
 /// The assembled system and its factorisation workspace.
 pub struct BlockSystem {
     key: PatternKey,
+    /// Whether the layout and its factor's structures are those of `key` (cleared while a new
+    /// layout is built, until its [`FactorJob`] is installed).
+    laid_out: bool,
     /// Node id -> block index (u32::MAX when the node is held fixed).
     pub slot: Vec<u32>,
     nb: usize,
@@ -159,6 +164,19 @@ pub struct BlockSystem {
     elim_slot: Vec<bool>,
     /// Per slot: offset of its kept unknowns in the reduced system (and the total at the end).
     koff: Vec<usize>,
+    /// The factorisation's structures of this layout (empty while a [`FactorJob`] holds them).
+    factor: Factor,
+    /// How many symbolic factorisations were computed (the reuse is tested through this).
+    pub symbolic_builds: usize,
+    /// Whether `l_values` and the elimination hold a numeric factorisation of the current
+    /// pattern (cleared when the pattern changes or a factorisation fails).
+    factored: bool,
+}
+
+/// What the factorisation of one layout reads besides the assembled blocks: the elimination
+/// plan, the reduced system's scalar layouts and faer's supernodal analysis, and the buffers of
+/// the numeric factorisation.
+pub(crate) struct Factor {
     /// Per original block: offset of its rows within its reduced column.
     blk_rowoff: Vec<u32>,
     /// The elimination of the data-free nodes' affine parts.
@@ -180,28 +198,11 @@ pub struct BlockSystem {
     scratch: MemBuffer,
     /// Bytes `scratch` holds (as [`faer::dyn_stack::StackReq::unaligned_bytes_required`]).
     scratch_bytes: usize,
-    /// How many symbolic factorisations were computed (the reuse is tested through this).
-    pub symbolic_builds: usize,
-    /// Whether `l_values` and the elimination hold a numeric factorisation of the current
-    /// pattern (cleared when the pattern changes or a factorisation fails).
-    factored: bool,
 }
 
-impl Default for BlockSystem {
+impl Default for Factor {
     fn default() -> Self {
-        BlockSystem {
-            key: PatternKey::default(),
-            slot: Vec::new(),
-            nb: 0,
-            col_start: vec![0],
-            rows: Vec::new(),
-            lookup: Vec::new(),
-            blocks: Vec::new(),
-            pose_cross: Vec::new(),
-            pose_block: [0.0; 36],
-            grad: Vec::new(),
-            elim_slot: Vec::new(),
-            koff: vec![0],
+        Factor {
             blk_rowoff: Vec::new(),
             elimination: Elimination::default(),
             rhs: Vec::new(),
@@ -217,9 +218,255 @@ impl Default for BlockSystem {
             l_values: Vec::new(),
             scratch: MemBuffer::new(faer::dyn_stack::StackReq::EMPTY),
             scratch_bytes: 0,
+        }
+    }
+}
+
+impl Default for BlockSystem {
+    fn default() -> Self {
+        BlockSystem {
+            key: PatternKey::default(),
+            laid_out: false,
+            slot: Vec::new(),
+            nb: 0,
+            col_start: vec![0],
+            rows: Vec::new(),
+            lookup: Vec::new(),
+            blocks: Vec::new(),
+            pose_cross: Vec::new(),
+            pose_block: [0.0; 36],
+            grad: Vec::new(),
+            elim_slot: Vec::new(),
+            koff: vec![0],
+            factor: Factor::default(),
             symbolic_builds: 0,
             factored: false,
         }
+    }
+}
+
+/// The upper block pattern of `pairs` (slots) with every diagonal block, per column: column
+/// starts and rows (ascending, the diagonal last).
+fn upper_pattern(nf: usize, pairs: impl Iterator<Item = (u32, u32)>) -> (Vec<usize>, Vec<u32>) {
+    let mut cols: Vec<Vec<u32>> = (0..nf).map(|i| vec![i as u32]).collect();
+    for (sa, sb) in pairs {
+        if sa != sb {
+            cols[sa.max(sb) as usize].push(sa.min(sb));
+        }
+    }
+    let mut start = vec![0usize; nf + 1];
+    let mut rows = Vec::new();
+    for (c, list) in cols.iter_mut().enumerate() {
+        list.sort_unstable();
+        list.dedup();
+        rows.extend_from_slice(list);
+        start[c + 1] = rows.len();
+    }
+    (start, rows)
+}
+
+/// A new layout's factor structures, still to build ([`Self::build`]): the elimination plan,
+/// the reduced system's scalar layouts (upper and lower) and faer's supernodal analysis. They
+/// need the layout but not the assembled blocks, so the solver builds them beside the first
+/// assembly on the new layout and hands them to [`BlockSystem::install`].
+pub(crate) struct FactorJob {
+    /// The buffers of the layout before, reused.
+    factor: Factor,
+    pose: bool,
+    /// Each eliminated node's reach (local ids): the nodes its A couples to.
+    reach: Vec<Vec<usize>>,
+    /// The elimination order: local id of each slot, and slot of each local id.
+    perm: Vec<usize>,
+    perm_inv: Vec<usize>,
+    elim_slot: Vec<bool>,
+    koff: Vec<usize>,
+    /// The coupled pairs in slots.
+    slot_pairs: Vec<(u32, u32)>,
+    /// The original upper block pattern (what assembly writes).
+    col_start: Vec<usize>,
+    rows: Vec<u32>,
+}
+
+impl FactorJob {
+    /// Builds the structures; the buffers of the layout before keep their allocations.
+    pub(crate) fn build(self) -> Result<Factor, String> {
+        let FactorJob {
+            mut factor,
+            pose,
+            reach,
+            perm,
+            perm_inv,
+            elim_slot,
+            koff,
+            slot_pairs,
+            col_start,
+            rows,
+        } = self;
+        let nf = elim_slot.len();
+        let size = |s: usize| if elim_slot[s] { 3 } else { 12 };
+        // Reduced pattern: the original pairs and, per eliminated node, the clique of its reach
+        // (the Schur complement's fill).
+        let mut clique = Vec::new();
+        for (lj, r) in reach.iter().enumerate() {
+            let sj = perm_inv[lj] as u32;
+            for (x, &a) in r.iter().enumerate() {
+                let sa = perm_inv[a] as u32;
+                clique.push((sj, sa));
+                for &b in &r[x + 1..] {
+                    clique.push((sa, perm_inv[b] as u32));
+                }
+            }
+        }
+        let (rcol_start, rrows) =
+            upper_pattern(nf, slot_pairs.iter().copied().chain(clique.iter().copied()));
+        // Row offset of reduced block (bi, bj), bi <= bj, within column bj.
+        let mut rowoff = vec![0u32; rrows.len()];
+        for bj in 0..nf {
+            let mut off = 0u32;
+            for p in rcol_start[bj]..rcol_start[bj + 1] {
+                rowoff[p] = off;
+                off += size(rrows[p] as usize) as u32;
+            }
+        }
+        let rowoff_of = |bi: u32, bj: u32| -> Result<u32, String> {
+            let (lo, hi) = (bi.min(bj), bi.max(bj));
+            let list = &rrows[rcol_start[hi as usize]..rcol_start[hi as usize + 1]];
+            list.binary_search(&lo)
+                .map(|p| rowoff[rcol_start[hi as usize] + p])
+                .map_err(|_| format!("reduced block ({lo}, {hi}) is missing"))
+        };
+        let find_orig = |bi: u32, bj: u32| -> Result<u32, String> {
+            let (lo, hi) = (bi.min(bj), bi.max(bj));
+            let list = &rows[col_start[hi as usize]..col_start[hi as usize + 1]];
+            list.binary_search(&lo)
+                .map(|p| (col_start[hi as usize] + p) as u32)
+                .map_err(|_| {
+                    format!("an eliminated node's link ({lo}, {hi}) is not among the pairs")
+                })
+        };
+        let mut blk_rowoff = std::mem::take(&mut factor.blk_rowoff);
+        blk_rowoff.clear();
+        blk_rowoff.resize(rows.len(), 0);
+        for bj in 0..nf {
+            for p in col_start[bj]..col_start[bj + 1] {
+                blk_rowoff[p] = rowoff_of(rows[p], bj as u32)?;
+            }
+        }
+        // Eliminated slots: their reach in slots, the blocks holding the couplings, and the
+        // reduced blocks their Schur complement lands in.
+        let elimination =
+            Elimination::plan(&elim_slot, &reach, &perm, &perm_inv, find_orig, rowoff_of)?;
+        // Scalar CSC of the reduced system, upper triangle.
+        let nk = koff[nf];
+        let n = nk + if pose { 6 } else { 0 };
+        let mut col_ptr = Vec::with_capacity(n + 1);
+        let mut row_idx = Vec::new();
+        let mut diag_pos = Vec::with_capacity(n);
+        col_ptr.push(0);
+        for bj in 0..nf {
+            let list = &rrows[rcol_start[bj]..rcol_start[bj + 1]];
+            for cc in 0..size(bj) {
+                for &bi in &list[..list.len() - 1] {
+                    let b0 = koff[bi as usize];
+                    row_idx.extend(b0..b0 + size(bi as usize));
+                }
+                row_idx.extend(koff[bj]..=koff[bj] + cc);
+                diag_pos.push(row_idx.len() - 1);
+                col_ptr.push(row_idx.len());
+            }
+        }
+        if pose {
+            for pc in 0..6 {
+                row_idx.extend(0..nk);
+                row_idx.extend((0..=pc).map(|r| nk + r));
+                diag_pos.push(row_idx.len() - 1);
+                col_ptr.push(row_idx.len());
+            }
+        }
+        // The lower triangle's layout (buffers reused from the pattern before).
+        let sizes: Vec<usize> = (0..nf).map(size).collect();
+        let mut lower = Lower {
+            col_ptr: std::mem::take(&mut factor.lcol_ptr),
+            row_idx: std::mem::take(&mut factor.lrow_idx),
+            from_upper: std::mem::take(&mut factor.from_upper),
+        };
+        lower.lay_out(
+            &Blocks {
+                size: &sizes,
+                off: &koff[..nf],
+                col_start: &rcol_start,
+                rows: &rrows,
+                rowoff: &rowoff,
+            },
+            &col_ptr,
+            pose,
+        )?;
+        // Elimination tree and column counts from the reduced block pattern (plus the pose
+        // block, coupled to every node), then faer's supernodal structure.
+        let mut bsize = sizes;
+        let mut boff: Vec<usize> = koff[..nf].to_vec();
+        let mut bcols: Vec<&[u32]> = (0..nf)
+            .map(|bj| &rrows[rcol_start[bj]..rcol_start[bj + 1]])
+            .collect();
+        let all: Vec<u32> = (0..=nf as u32).collect();
+        if pose {
+            bsize.push(6);
+            boff.push(nk);
+            bcols.push(&all);
+        }
+        let (etree, col_counts) = block_etree(&bcols, &bsize, &boff);
+        let a = SymbolicSparseColMatRef::new_checked(n, n, &col_ptr, None, &row_idx);
+        // SAFETY: `block_etree` gives the elimination tree `prefactorize_symbolic_cholesky` computes
+        // for this pattern (the diagonal blocks dense, each coupling a whole block; checked against
+        // it in this module's tests), which is all `from_inner` asks.
+        let et = unsafe { EliminationTreeRef::<usize>::from_inner(&etree) };
+        let mut mem =
+            MemBuffer::try_new(factorize_supernodal_symbolic_cholesky_scratch::<usize>(n))
+                .map_err(|_| "out of memory for the symbolic Cholesky")?;
+        let symbolic = factorize_supernodal_symbolic_cholesky(
+            a,
+            et,
+            &col_counts,
+            MemStack::new(&mut mem),
+            Default::default(),
+        )
+        .map_err(|e| format!("symbolic Cholesky failed: {e:?}"))?;
+        tracing::debug!(
+            "ED symbolic: n {n}, nnz(A upper) {}, nnz(L) {}, supernodes {}",
+            row_idx.len(),
+            symbolic.len_val(),
+            symbolic.n_supernodes()
+        );
+        // Written whole by each factorisation.
+        factor.l_values.resize(symbolic.len_val(), 0.0);
+        let req = factorize_supernodal_numeric_llt_scratch::<usize, f64>(
+            &symbolic,
+            Par::Seq,
+            Default::default(),
+        )
+        .or(symbolic.solve_in_place_scratch::<f64>(1, Par::Seq));
+        // Reused while large enough (a new pattern is laid out on most frames of a sweep).
+        if req.unaligned_bytes_required() > factor.scratch_bytes {
+            factor.scratch =
+                MemBuffer::try_new(req).map_err(|_| "out of memory for the Cholesky workspace")?;
+            factor.scratch_bytes = req.unaligned_bytes_required();
+        }
+        // The buffers keep their allocations (and stale values) from pattern to pattern:
+        // `solve` zeroes the values, and the right-hand side and the lower triangle are
+        // written whole.
+        factor.values.resize(row_idx.len(), 0.0);
+        factor.lvalues.resize(row_idx.len(), 0.0);
+        factor.rhs.resize(n, 0.0);
+        factor.blk_rowoff = blk_rowoff;
+        factor.elimination = elimination;
+        factor.col_ptr = col_ptr;
+        factor.row_idx = row_idx;
+        factor.diag_pos = diag_pos;
+        factor.lcol_ptr = lower.col_ptr;
+        factor.lrow_idx = lower.row_idx;
+        factor.from_upper = lower.from_upper;
+        factor.symbolic = Some(symbolic);
+        Ok(factor)
     }
 }
 
@@ -232,7 +479,7 @@ impl BlockSystem {
     /// Number of unknowns the sparse factorisation sees (after the data-free nodes' affine parts
     /// are eliminated).
     pub fn factor_dim(&self) -> usize {
-        self.rhs.len()
+        self.factor.rhs.len()
     }
 
     /// Number of solved node blocks.
@@ -244,22 +491,50 @@ impl BlockSystem {
     /// factorisation) serves while it covers `key` ([`PatternKey::covers`]); otherwise a new one is
     /// built, for `key` widened by the pairs before ([`PatternKey::widened`]).
     pub fn prepare(&mut self, n_nodes: usize, key: &PatternKey) -> Result<(), String> {
-        if !self.key.covers(key) || self.symbolic.is_none() || self.slot.len() != n_nodes {
+        if let Some(job) = self.prepare_deferred(n_nodes, key)? {
+            self.install(job.build())?;
+        }
+        Ok(())
+    }
+
+    /// [`Self::prepare`] whose new layout's factor structures, if it lays one out, are left to
+    /// the caller: the system can be assembled at once, and solved once the job's
+    /// [`FactorJob::build`] is handed to [`Self::install`].
+    pub(crate) fn prepare_deferred(
+        &mut self,
+        n_nodes: usize,
+        key: &PatternKey,
+    ) -> Result<Option<FactorJob>, String> {
+        let job = if !self.laid_out || !self.key.covers(key) || self.slot.len() != n_nodes {
             self.factored = false;
             let key = self.key.widened(key);
-            self.build_pattern(n_nodes, key)?;
-        }
+            Some(self.lay_out(n_nodes, key)?)
+        } else {
+            None
+        };
         self.blocks.iter_mut().for_each(|b| b.fill(0.0));
         self.pose_cross.iter_mut().for_each(|b| b.fill(0.0));
         self.pose_block.fill(0.0);
         self.grad.fill(0.0);
+        Ok(job)
+    }
+
+    /// Takes the factor structures a [`FactorJob`] of the current layout built; a failure leaves
+    /// the system unprepared (the next [`Self::prepare`] lays it out again).
+    pub(crate) fn install(&mut self, built: Result<Factor, String>) -> Result<(), String> {
+        self.factor = built?;
+        self.symbolic_builds += 1;
+        self.laid_out = true;
         Ok(())
     }
 
-    fn build_pattern(&mut self, n_nodes: usize, key: PatternKey) -> Result<(), String> {
+    /// Lays out the pattern of `key` (its ordering, its blocks and their lookup), and returns its
+    /// factor structures' job.
+    fn lay_out(&mut self, n_nodes: usize, key: PatternKey) -> Result<FactorJob, String> {
         // The old pattern's factorisation no longer holds once its buffers are taken below: a
         // failure on the way leaves the system unprepared (`solve` then says so).
-        self.symbolic = None;
+        self.laid_out = false;
+        self.factor.symbolic = None;
         let nf = key.free.len();
         let mut local = vec![u32::MAX; n_nodes];
         for (i, &j) in key.free.iter().enumerate() {
@@ -341,198 +616,28 @@ impl BlockSystem {
             slot[key.free[old_local] as usize] = new as u32;
         }
         let elim_slot: Vec<bool> = perm.iter().map(|&l| elim_local[l]).collect();
-        let size = |s: usize| if elim_slot[s] { 3 } else { 12 };
         let mut koff = vec![0usize; nf + 1];
         for s in 0..nf {
-            koff[s + 1] = koff[s] + size(s);
+            koff[s + 1] = koff[s] + if elim_slot[s] { 3 } else { 12 };
         }
         // Original upper block pattern (what assembly writes) in slot numbering, per column.
-        let upper = |pairs: &mut dyn Iterator<Item = (u32, u32)>| {
-            let mut cols: Vec<Vec<u32>> = (0..nf).map(|i| vec![i as u32]).collect();
-            for (sa, sb) in pairs {
-                if sa != sb {
-                    cols[sa.max(sb) as usize].push(sa.min(sb));
-                }
-            }
-            let mut start = vec![0usize; nf + 1];
-            let mut rows = Vec::new();
-            for (c, list) in cols.iter_mut().enumerate() {
-                list.sort_unstable();
-                list.dedup();
-                rows.extend_from_slice(list);
-                start[c + 1] = rows.len();
-            }
-            (start, rows)
-        };
-        let slot_pairs = key.pairs.iter().filter_map(|&(a, b)| {
-            let (sa, sb) = (slot[a as usize], slot[b as usize]);
-            (sa != u32::MAX && sb != u32::MAX).then_some((sa, sb))
-        });
-        let (col_start, rows) = upper(&mut slot_pairs.clone());
-        // Reduced pattern: the original pairs and the cliques.
-        let mut clique = Vec::new();
-        for (lj, r) in reach.iter().enumerate() {
-            let sj = perm_inv[lj] as u32;
-            for (x, &a) in r.iter().enumerate() {
-                let sa = perm_inv[a] as u32;
-                clique.push((sj, sa));
-                for &b in &r[x + 1..] {
-                    clique.push((sa, perm_inv[b] as u32));
-                }
-            }
-        }
-        let (rcol_start, rrows) = upper(&mut slot_pairs.chain(clique.iter().copied()));
-        // Row offset of reduced block (bi, bj), bi <= bj, within column bj.
-        let mut rowoff = vec![0u32; rrows.len()];
-        for bj in 0..nf {
-            let mut off = 0u32;
-            for p in rcol_start[bj]..rcol_start[bj + 1] {
-                rowoff[p] = off;
-                off += size(rrows[p] as usize) as u32;
-            }
-        }
-        let rowoff_of = |bi: u32, bj: u32| -> Result<u32, String> {
-            let (lo, hi) = (bi.min(bj), bi.max(bj));
-            let list = &rrows[rcol_start[hi as usize]..rcol_start[hi as usize + 1]];
-            list.binary_search(&lo)
-                .map(|p| rowoff[rcol_start[hi as usize] + p])
-                .map_err(|_| format!("reduced block ({lo}, {hi}) is missing"))
-        };
-        let find_orig = |bi: u32, bj: u32| -> Result<u32, String> {
-            let (lo, hi) = (bi.min(bj), bi.max(bj));
-            let list = &rows[col_start[hi as usize]..col_start[hi as usize + 1]];
-            list.binary_search(&lo)
-                .map(|p| (col_start[hi as usize] + p) as u32)
-                .map_err(|_| {
-                    format!("an eliminated node's link ({lo}, {hi}) is not among the pairs")
-                })
-        };
-        let mut blk_rowoff = vec![0u32; rows.len()];
-        for bj in 0..nf {
-            for p in col_start[bj]..col_start[bj + 1] {
-                blk_rowoff[p] = rowoff_of(rows[p], bj as u32)?;
-            }
-        }
-        // Eliminated slots: their reach in slots, the blocks holding the couplings, and the
-        // reduced blocks their Schur complement lands in.
-        let elimination =
-            Elimination::plan(&elim_slot, &reach, &perm, &perm_inv, find_orig, rowoff_of)?;
-        // Scalar CSC of the reduced system, upper triangle.
-        let pose = key.pose;
-        let nk = koff[nf];
-        let n = nk + if pose { 6 } else { 0 };
-        let mut col_ptr = Vec::with_capacity(n + 1);
-        let mut row_idx = Vec::new();
-        let mut diag_pos = Vec::with_capacity(n);
-        col_ptr.push(0);
-        for bj in 0..nf {
-            let list = &rrows[rcol_start[bj]..rcol_start[bj + 1]];
-            for cc in 0..size(bj) {
-                for &bi in &list[..list.len() - 1] {
-                    let b0 = koff[bi as usize];
-                    row_idx.extend(b0..b0 + size(bi as usize));
-                }
-                row_idx.extend(koff[bj]..=koff[bj] + cc);
-                diag_pos.push(row_idx.len() - 1);
-                col_ptr.push(row_idx.len());
-            }
-        }
-        if pose {
-            for pc in 0..6 {
-                row_idx.extend(0..nk);
-                row_idx.extend((0..=pc).map(|r| nk + r));
-                diag_pos.push(row_idx.len() - 1);
-                col_ptr.push(row_idx.len());
-            }
-        }
-        // The lower triangle's layout (buffers reused from the pattern before).
-        let sizes: Vec<usize> = (0..nf).map(size).collect();
-        let mut lower = Lower {
-            col_ptr: std::mem::take(&mut self.lcol_ptr),
-            row_idx: std::mem::take(&mut self.lrow_idx),
-            from_upper: std::mem::take(&mut self.from_upper),
-        };
-        lower.lay_out(
-            &Blocks {
-                size: &sizes,
-                off: &koff[..nf],
-                col_start: &rcol_start,
-                rows: &rrows,
-                rowoff: &rowoff,
-            },
-            &col_ptr,
-            pose,
-        )?;
-        let Lower {
-            col_ptr: lcol_ptr,
-            row_idx: lrow_idx,
-            from_upper,
-        } = lower;
-        // Elimination tree and column counts from the reduced block pattern (plus the pose
-        // block, coupled to every node), then faer's supernodal structure.
-        let mut bsize = sizes;
-        let mut boff: Vec<usize> = koff[..nf].to_vec();
-        let mut bcols: Vec<&[u32]> = (0..nf)
-            .map(|bj| &rrows[rcol_start[bj]..rcol_start[bj + 1]])
+        let slot_pairs: Vec<(u32, u32)> = key
+            .pairs
+            .iter()
+            .filter_map(|&(a, b)| {
+                let (sa, sb) = (slot[a as usize], slot[b as usize]);
+                (sa != u32::MAX && sb != u32::MAX).then_some((sa, sb))
+            })
             .collect();
-        let all: Vec<u32> = (0..=nf as u32).collect();
-        if pose {
-            bsize.push(6);
-            boff.push(nk);
-            bcols.push(&all);
-        }
-        let (etree, col_counts) = block_etree(&bcols, &bsize, &boff);
-        let a = SymbolicSparseColMatRef::new_checked(n, n, &col_ptr, None, &row_idx);
-        // SAFETY: `block_etree` gives the elimination tree `prefactorize_symbolic_cholesky` computes
-        // for this pattern (the diagonal blocks dense, each coupling a whole block; checked against
-        // it in this module's tests), which is all `from_inner` asks.
-        let et = unsafe { EliminationTreeRef::<usize>::from_inner(&etree) };
-        let mut mem =
-            MemBuffer::try_new(factorize_supernodal_symbolic_cholesky_scratch::<usize>(n))
-                .map_err(|_| "out of memory for the symbolic Cholesky")?;
-        let symbolic = factorize_supernodal_symbolic_cholesky(
-            a,
-            et,
-            &col_counts,
-            MemStack::new(&mut mem),
-            Default::default(),
-        )
-        .map_err(|e| format!("symbolic Cholesky failed: {e:?}"))?;
-        tracing::debug!(
-            "ED symbolic: n {n}, nnz(A upper) {}, nnz(L) {}, supernodes {}",
-            row_idx.len(),
-            symbolic.len_val(),
-            symbolic.n_supernodes()
-        );
-        // Written whole by each factorisation.
-        self.l_values.resize(symbolic.len_val(), 0.0);
-        let req = factorize_supernodal_numeric_llt_scratch::<usize, f64>(
-            &symbolic,
-            Par::Seq,
-            Default::default(),
-        )
-        .or(symbolic.solve_in_place_scratch::<f64>(1, Par::Seq));
-        // Reused while large enough (a new pattern is laid out on most frames of a sweep).
-        if req.unaligned_bytes_required() > self.scratch_bytes {
-            self.scratch =
-                MemBuffer::try_new(req).map_err(|_| "out of memory for the Cholesky workspace")?;
-            self.scratch_bytes = req.unaligned_bytes_required();
-        }
-        self.symbolic_builds += 1;
+        let (col_start, rows) = upper_pattern(nf, slot_pairs.iter().copied());
+        let pose = key.pose;
         self.nb = nf;
         self.slot = slot;
         // The buffers keep their allocations (and stale values) from pattern to pattern:
-        // `prepare` zeroes the blocks, the pose parts and the gradient before each assembly,
-        // `solve` the values, and the right-hand side and the lower triangle are written whole.
+        // `prepare` zeroes the blocks, the pose parts and the gradient before each assembly.
         self.blocks.resize(rows.len(), [0.0; 144]);
         self.pose_cross.resize(if pose { nf } else { 0 }, [0.0; 72]);
         self.grad.resize(12 * nf + if pose { 6 } else { 0 }, 0.0);
-        self.values.resize(row_idx.len(), 0.0);
-        self.rhs.resize(n, 0.0);
-        self.elim_slot = elim_slot;
-        self.koff = koff;
-        self.blk_rowoff = blk_rowoff;
-        self.elimination = elimination;
         self.lookup.clear();
         if nf <= DENSE_LOOKUP_MAX {
             self.lookup.resize(nf * nf, u32::MAX);
@@ -547,19 +652,23 @@ impl BlockSystem {
                 }
             }
         }
-        self.col_start = col_start;
-        self.rows = rows;
-        self.col_ptr = col_ptr;
-        self.row_idx = row_idx;
-        self.diag_pos = diag_pos;
-        self.lvalues.resize(self.row_idx.len(), 0.0);
-        self.lcol_ptr = lcol_ptr;
-        self.lrow_idx = lrow_idx;
-        self.from_upper = from_upper;
-        // An empty system counts as prepared too.
-        self.symbolic = Some(symbolic);
+        self.elim_slot.clone_from(&elim_slot);
+        self.koff.clone_from(&koff);
+        self.col_start.clone_from(&col_start);
+        self.rows.clone_from(&rows);
         self.key = key;
-        Ok(())
+        Ok(FactorJob {
+            factor: std::mem::take(&mut self.factor),
+            pose,
+            reach,
+            perm,
+            perm_inv,
+            elim_slot,
+            koff,
+            slot_pairs,
+            col_start,
+            rows,
+        })
     }
 
     /// The upper blocks of block column `bj`: (block index, row block), ascending rows.
@@ -694,11 +803,16 @@ impl BlockSystem {
             return Ok(true);
         }
         self.factored = false;
+        // Laid out without its factor structures installed (or they failed): the scalar
+        // layouts below are not this layout's.
+        if !self.laid_out {
+            return Err("the system was not prepared".into());
+        }
         let damp = |d: f64| d + lambda * (d.abs() + ridge) + 1e-12 * ridge;
         let nf = self.nb;
         let nk = self.koff[nf];
         // The kept parts of the assembled blocks, into the reduced CSC values.
-        self.values.fill(0.0);
+        self.factor.values.fill(0.0);
         for bj in 0..nf {
             let kj = kept(self.elim_slot[bj]);
             let c0 = self.koff[bj];
@@ -706,16 +820,16 @@ impl BlockSystem {
                 let bi = self.rows[idx] as usize;
                 let ki = kept(self.elim_slot[bi]);
                 let blk = &self.blocks[idx];
-                let ro = self.blk_rowoff[idx] as usize;
+                let ro = self.factor.blk_rowoff[idx] as usize;
                 for (kc, &oc) in kj.iter().enumerate() {
-                    let base = self.col_ptr[c0 + kc] + ro;
+                    let base = self.factor.col_ptr[c0 + kc] + ro;
                     if bi == bj {
                         for (kr, &or) in ki[..=kc].iter().enumerate() {
-                            self.values[base + kr] = blk[sym12(or, oc)];
+                            self.factor.values[base + kr] = blk[sym12(or, oc)];
                         }
                     } else {
                         for (kr, &or) in ki.iter().enumerate() {
-                            self.values[base + kr] = blk[oc * 12 + or];
+                            self.factor.values[base + kr] = blk[oc * 12 + or];
                         }
                     }
                 }
@@ -723,52 +837,59 @@ impl BlockSystem {
         }
         if self.key.pose {
             for pc in 0..6 {
-                let base = self.col_ptr[nk + pc];
+                let base = self.factor.col_ptr[nk + pc];
                 for (s, cross) in self.pose_cross.iter().enumerate() {
                     for (kr, &or) in kept(self.elim_slot[s]).iter().enumerate() {
-                        self.values[base + self.koff[s] + kr] = cross[pc * 12 + or];
+                        self.factor.values[base + self.koff[s] + kr] = cross[pc * 12 + or];
                     }
                 }
                 for r in 0..=pc {
-                    self.values[base + nk + r] = self.pose_block[pc * 6 + r];
+                    self.factor.values[base + nk + r] = self.pose_block[pc * 6 + r];
                 }
             }
         }
         self.rhs_from_grad();
-        for &p in &self.diag_pos {
-            self.values[p] = damp(self.values[p]);
+        for &p in &self.factor.diag_pos {
+            self.factor.values[p] = damp(self.factor.values[p]);
         }
         // Eliminate the affine parts of the data-free nodes.
         let layout = Layout {
             koff: &self.koff,
             elim_slot: &self.elim_slot,
         };
-        if !self.elimination.eliminate(
+        if !self.factor.elimination.eliminate(
             &self.blocks,
             &self.grad,
             &layout,
-            &self.col_ptr,
-            &mut self.values,
-            &mut self.rhs,
+            &self.factor.col_ptr,
+            &mut self.factor.values,
+            &mut self.factor.rhs,
             damp,
         ) {
             return Ok(false);
         }
         let symbolic = self
+            .factor
             .symbolic
             .as_ref()
             .ok_or("the system was not prepared")?;
-        let nr = self.rhs.len();
-        for (l, &u) in self.lvalues.iter_mut().zip(&self.from_upper) {
-            *l = self.values[u as usize];
+        let nr = self.factor.rhs.len();
+        for (l, &u) in self.factor.lvalues.iter_mut().zip(&self.factor.from_upper) {
+            *l = self.factor.values[u as usize];
         }
         let a = SparseColMatRef::new(
-            SymbolicSparseColMatRef::new_checked(nr, nr, &self.lcol_ptr, None, &self.lrow_idx),
-            &self.lvalues,
+            SymbolicSparseColMatRef::new_checked(
+                nr,
+                nr,
+                &self.factor.lcol_ptr,
+                None,
+                &self.factor.lrow_idx,
+            ),
+            &self.factor.lvalues,
         );
-        let stack = MemStack::new(&mut self.scratch);
+        let stack = MemStack::new(&mut self.factor.scratch);
         if factorize_supernodal_numeric_llt::<usize, f64>(
-            &mut self.l_values,
+            &mut self.factor.l_values,
             a,
             Default::default(),
             symbolic,
@@ -808,8 +929,9 @@ impl BlockSystem {
             koff: &self.koff,
             elim_slot: &self.elim_slot,
         };
-        self.elimination
-            .reduce_rhs(&self.grad, &layout, &mut self.rhs);
+        self.factor
+            .elimination
+            .reduce_rhs(&self.grad, &layout, &mut self.factor.rhs);
         self.solve_factored(dx)
     }
 
@@ -817,17 +939,18 @@ impl BlockSystem {
     /// solution into `dx` (see [`Self::expand`]).
     fn solve_factored(&mut self, dx: &mut [f64]) -> Result<bool, String> {
         let symbolic = self
+            .factor
             .symbolic
             .as_ref()
             .ok_or("the system was not prepared")?;
-        let nr = self.rhs.len();
-        let llt = SupernodalLltRef::<usize, f64>::new(symbolic, &self.l_values);
-        let rhs = faer::MatMut::from_column_major_slice_mut(self.rhs.as_mut_slice(), nr, 1);
+        let nr = self.factor.rhs.len();
+        let llt = SupernodalLltRef::<usize, f64>::new(symbolic, &self.factor.l_values);
+        let rhs = faer::MatMut::from_column_major_slice_mut(self.factor.rhs.as_mut_slice(), nr, 1);
         llt.solve_in_place_with_conj(
             faer::Conj::No,
             rhs,
             Par::Seq,
-            MemStack::new(&mut self.scratch),
+            MemStack::new(&mut self.factor.scratch),
         );
         Ok(self.expand(dx))
     }
@@ -839,13 +962,13 @@ impl BlockSystem {
             let kj = kept(self.elim_slot[bj]);
             let c0 = self.koff[bj];
             for (kr, &or) in kj.iter().enumerate() {
-                self.rhs[c0 + kr] = -self.grad[12 * bj + or];
+                self.factor.rhs[c0 + kr] = -self.grad[12 * bj + or];
             }
         }
         if self.key.pose {
             let nk = self.koff[nf];
             for pc in 0..6 {
-                self.rhs[nk + pc] = -self.grad[12 * nf + pc];
+                self.factor.rhs[nk + pc] = -self.grad[12 * nf + pc];
             }
         }
     }
@@ -858,17 +981,19 @@ impl BlockSystem {
         // Back to the 12-layout: kept unknowns directly, eliminated ones by back-substitution.
         for s in 0..nf {
             for (kr, &or) in kept(self.elim_slot[s]).iter().enumerate() {
-                dx[12 * s + or] = self.rhs[self.koff[s] + kr];
+                dx[12 * s + or] = self.factor.rhs[self.koff[s] + kr];
             }
         }
         if self.key.pose {
-            dx[12 * nf..].copy_from_slice(&self.rhs[nk..]);
+            dx[12 * nf..].copy_from_slice(&self.factor.rhs[nk..]);
         }
         let layout = Layout {
             koff: &self.koff,
             elim_slot: &self.elim_slot,
         };
-        self.elimination.back_substitute(&layout, &self.rhs, dx);
+        self.factor
+            .elimination
+            .back_substitute(&layout, &self.factor.rhs, dx);
         dx.iter().all(|x| x.is_finite())
     }
 }

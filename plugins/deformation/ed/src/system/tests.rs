@@ -269,6 +269,49 @@ fn a_link_outside_the_pairs_is_an_error_not_a_panic() {
 }
 
 #[test]
+fn a_deferred_factor_solves_as_the_prepared_one_and_is_needed_to_solve() {
+    let mut rng = Rng(0x5851_f42d_4c95_7f2d);
+    for pose in [false, true] {
+        for eliminate in [false, true] {
+            let mut want_sys = random_system(pose, eliminate, &mut rng);
+            let (n_nodes, key) = (want_sys.slot.len(), want_sys.key.clone());
+            let mut want = Vec::new();
+            assert!(want_sys.solve(0.05, 1e-6, &mut want).unwrap());
+            // Laid out with the factor structures left to a job, then assembled (here, the
+            // same sums copied: the same key gives the same ordering and blocks).
+            let mut sys = BlockSystem::default();
+            let job = sys
+                .prepare_deferred(n_nodes, &key)
+                .unwrap()
+                .expect("a new layout");
+            assert_eq!(sys.slot, want_sys.slot);
+            sys.blocks.copy_from_slice(&want_sys.blocks);
+            sys.pose_cross.copy_from_slice(&want_sys.pose_cross);
+            sys.pose_block = want_sys.pose_block;
+            sys.grad.copy_from_slice(&want_sys.grad);
+            // Before the job is installed: an error, not a panic nor a stale answer.
+            let mut dx = Vec::new();
+            let err = sys.solve(0.05, 1e-6, &mut dx).unwrap_err();
+            assert!(err.contains("not prepared"), "{err}");
+            sys.install(job.build()).unwrap();
+            assert_eq!(sys.symbolic_builds, 1);
+            assert_eq!(sys.factor_dim(), want_sys.factor_dim());
+            assert!(sys.solve(0.05, 1e-6, &mut dx).unwrap());
+            assert_eq!(dx, want, "pose {pose}, eliminate {eliminate}");
+            // The pattern serves on: no new layout, no job.
+            assert!(sys.prepare_deferred(n_nodes, &key).unwrap().is_none());
+            // A job dropped unbuilt: the next preparation lays the pattern out again.
+            let mut dropped = BlockSystem::default();
+            drop(dropped.prepare_deferred(n_nodes, &key).unwrap());
+            assert!(dropped.solve(0.05, 1e-6, &mut dx).is_err());
+            dropped.prepare(n_nodes, &key).unwrap();
+            assert_eq!(dropped.symbolic_builds, 1);
+            assert!(dropped.prepare_deferred(n_nodes, &key).unwrap().is_none());
+        }
+    }
+}
+
+#[test]
 fn a_wider_pattern_serves_and_widening_takes_the_union() {
     // Pairs among the data nodes (0, 1, 2, 5, 9) that no edge or point couples.
     let extra = [(1, 5), (1, 9), (2, 9)];
