@@ -91,6 +91,8 @@ struct Step {
     on_level_threads: usize,
     /// The most threads rayon had for a call's parallel work.
     pool_threads: usize,
+    /// The highest nice value a call ran at.
+    nice: i32,
 }
 
 impl Node for Step {
@@ -165,6 +167,7 @@ impl Node for Step {
             self.on_level_threads += 1;
         }
         self.pool_threads = self.pool_threads.max(rayon::current_num_threads());
+        self.nice = self.nice.max(misslam::framework::priority::thread_nice());
         Ok(Flow::Continue)
     }
 
@@ -178,6 +181,7 @@ impl Node for Step {
             &format!("{}.pool_threads", ctx.id),
             self.pool_threads as f64,
         );
+        ctx.report_eval(&format!("{}.nice", ctx.id), self.nice as f64);
         Ok(())
     }
 }
@@ -211,6 +215,7 @@ fn registry(log: Log) -> Registry {
                 evals: 0,
                 on_level_threads: 0,
                 pool_threads: 0,
+                nice: i32::MIN,
             })
         },
     ))
@@ -606,6 +611,62 @@ fn each_pipelined_level_has_a_pool_of_level_threads() {
     .expect("a negative thread count is refused")
     .to_string();
     assert!(err.contains("graph.level_threads"), "{err}");
+}
+
+#[test]
+fn a_pipelined_level_runs_at_the_lowest_priority_all_its_nodes_ask() {
+    // `nice` lowers a level's pool's priority only where every node of the level asks (the
+    // lowest value asked): `left` and `right` share a level, `join` has one of its own. One
+    // frame at a time there are no level pools and nothing changes.
+    let own = misslam::framework::priority::thread_nice();
+    let at = |asked: i32| {
+        if cfg!(target_os = "linux") {
+            asked.max(own)
+        } else {
+            own
+        }
+    };
+    for (sets, level, seen) in [
+        (&["graph.pipeline=3"][..], [0, 0, 0], [0, 0, 0]),
+        (
+            &["graph.pipeline=3", "join.nice=7"][..],
+            [0, 0, 7],
+            [0, 0, 7],
+        ),
+        (
+            &["graph.pipeline=3", "left.nice=5"][..],
+            [0, 0, 0],
+            [0, 0, 0],
+        ),
+        (
+            &[
+                "graph.pipeline=3",
+                "left.nice=9",
+                "right.nice=5",
+                "join.nice=0",
+            ][..],
+            [0, 5, 0],
+            [5, 5, 0],
+        ),
+        (&["join.nice=7"][..], [0, 0, 0], [0, 0, 0]),
+    ] {
+        let (report, _) = run(DIAMOND, sets, "nice");
+        assert!(report.error.is_none(), "{sets:?}");
+        let pipelined = report.metrics.pipeline > 1;
+        let want: Vec<u32> = if pipelined {
+            level.to_vec()
+        } else {
+            Vec::new()
+        };
+        assert_eq!(report.metrics.level_nice, want, "{sets:?}");
+        for (node, asked) in ["left", "right", "join"].into_iter().zip(seen) {
+            assert_eq!(
+                report.metrics.eval[&format!("{node}.nice")],
+                at(asked) as f64,
+                "{sets:?}: {node}"
+            );
+        }
+    }
 }
 
 #[test]

@@ -12,6 +12,7 @@ pub mod metrics;
 pub mod node;
 pub mod payload;
 pub mod pfm;
+pub mod priority;
 pub mod recorder;
 pub mod registry;
 pub mod runtime;

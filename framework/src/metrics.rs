@@ -103,6 +103,11 @@ pub struct RunMetrics {
     /// node's `threads` setting changes its level's); empty when they ran one frame at a time.
     #[serde(default)]
     pub level_pools: Vec<usize>,
+    /// Nice value of each level's pool, level by level, when the levels ran as a pipeline (the
+    /// lowest its nodes' `nice` settings ask, 0 without); empty when they ran one frame at a
+    /// time.
+    #[serde(default)]
+    pub level_nice: Vec<u32>,
     /// Set when the run stopped on an error: what happened.
     pub aborted: Option<String>,
     /// The parameters every node ran with, after defaults and overrides.

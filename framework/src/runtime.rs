@@ -222,6 +222,14 @@ impl Runtime {
         } else {
             Vec::new()
         };
+        let level_nice: Vec<u32> = if pipelined {
+            self.levels
+                .iter()
+                .map(|l| self.graph.level_pool_nice_of(l.clone()))
+                .collect()
+        } else {
+            Vec::new()
+        };
 
         // start
         for slot in &mut self.slots {
@@ -281,6 +289,7 @@ impl Runtime {
                     frames: &frames,
                     in_flight: self.graph.pipeline,
                     level_threads: &level_pools,
+                    level_nice: &level_nice,
                     policy: self.graph.on_error,
                 };
                 pipeline::run(&mut self.slots, &schedule, &env, &mut collector);
@@ -359,6 +368,7 @@ impl Runtime {
             pipeline: if pipelined { self.graph.pipeline } else { 1 },
             level_threads: if pipelined { level_threads } else { 0 },
             level_pools,
+            level_nice,
             ..Default::default()
         };
         for (slot, spec) in self.slots.iter().zip(&self.graph.nodes) {

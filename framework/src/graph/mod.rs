@@ -35,6 +35,9 @@ use crate::registry::{closest, unknown_key_message, BuildError, Plugin, Registry
 
 /// The most threads a node may ask of its level's pool (`threads = N`).
 pub const MAX_LEVEL_THREADS: u32 = 1024;
+/// The highest nice value a node may ask for its level's pool (`nice = N`; Linux's lowest
+/// priority).
+pub const MAX_NICE: u32 = 19;
 
 /// What the runtime does when a node fails on a frame.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default, Deserialize, serde::Serialize)]
@@ -100,6 +103,7 @@ struct NodeSection {
     inputs: Option<Spanned<BTreeMap<Spanned<String>, Spanned<String>>>>,
     log: Option<bool>,
     threads: Option<Spanned<i64>>,
+    nice: Option<Spanned<i64>>,
 }
 
 /// Where an input of a validated node comes from.
@@ -128,6 +132,12 @@ pub struct NodeSpec {
     /// its table); a level's pool has the most any of its nodes asks, those without it asking
     /// for `[graph] level_threads` ([`Graph::level_pool_threads`]).
     pub threads: Option<u32>,
+    /// Nice value this node asks for its level's pool in the pipelined schedule (`nice = N` in
+    /// its table, 0 to [`MAX_NICE`]): a lower CPU priority, for nodes off the pipeline's
+    /// critical path (scoring, export) so that they take the cores the others leave. A level's
+    /// pool runs at the lowest value its nodes ask, those without it asking 0
+    /// ([`Graph::level_pool_nice_of`]), so a node is never slowed by another's setting.
+    pub nice: Option<u32>,
     /// Topological level: 0 for sources, else 1 + the highest level of its inputs.
     pub level: usize,
 }
@@ -192,6 +202,16 @@ impl Graph {
             .map(|n| n.threads.map_or(default, |t| t as usize))
             .max()
             .unwrap_or(default)
+    }
+
+    /// Nice value of the pool of the level made of `nodes`: the lowest any of them asks
+    /// ([`NodeSpec::nice`]), 0 for those that do not say.
+    pub fn level_pool_nice_of(&self, nodes: Range<usize>) -> u32 {
+        self.nodes[nodes]
+            .iter()
+            .map(|n| n.nice.unwrap_or(0))
+            .min()
+            .unwrap_or(0)
     }
 
     /// Folder of the graph file.
@@ -307,6 +327,7 @@ pub fn parse(
         inputs_span: Range<usize>,
         log: bool,
         threads: Option<u32>,
+        nice: Option<u32>,
     }
     let mut seen: HashMap<String, Range<usize>> = HashMap::new();
     let mut pending: Vec<Pending> = Vec::new();
@@ -400,6 +421,16 @@ pub fn parse(
             }
             t => t.as_ref().map(|t| *t.get_ref() as u32),
         };
+        let nice_msg = |n: i64| {
+            format!("node `{id}`: `nice` takes a nice value from 0 to {MAX_NICE} (a lower priority), got {n}")
+        };
+        let check_nice = |n: i64| (0..=MAX_NICE as i64).contains(&n);
+        let mut nice = match &node.nice {
+            Some(t) if !check_nice(*t.get_ref()) => {
+                return Err(at(t.span(), nice_msg(*t.get_ref())))
+            }
+            t => t.as_ref().map(|t| *t.get_ref() as u32),
+        };
         let mut overridden: HashMap<String, String> = HashMap::new();
         for o in &my_overrides {
             match o.path.first().map(String::as_str) {
@@ -417,6 +448,15 @@ pub fn parse(
                         return Err(GraphError::at_override(file, &o.arg, threads_msg(n)));
                     }
                     threads = Some(n as u32);
+                }
+                Some("nice") if o.path.len() == 1 => {
+                    let n = o.value.as_integer().ok_or_else(|| {
+                        GraphError::at_override(file, &o.arg, "`nice` takes an integer")
+                    })?;
+                    if !check_nice(n) {
+                        return Err(GraphError::at_override(file, &o.arg, nice_msg(n)));
+                    }
+                    nice = Some(n as u32);
                 }
                 _ => {
                     set_path(&mut params, &o.path, o.value.clone()).map_err(|m| {
@@ -478,6 +518,7 @@ pub fn parse(
             inputs_span,
             log,
             threads,
+            nice,
         });
     }
     if pending.is_empty() {
@@ -647,6 +688,7 @@ pub fn parse(
                 .collect(),
             log: p.log,
             threads: p.threads,
+            nice: p.nice,
             level: level[old],
         });
     }

@@ -10,7 +10,10 @@
 //! between frames against 31 to 33 with a pool each). A pool has `[graph] level_threads`
 //! threads, by default half the cores ([`crate::graph::Graph::level_pool_threads`]): pools of
 //! all the cores each oversubscribed a 16-core machine. A node may ask its level's pool for
-//! another number (`threads = N` in its table, [`crate::graph::NodeSpec::threads`]).
+//! another number (`threads = N` in its table, [`crate::graph::NodeSpec::threads`]), and for a
+//! lower CPU priority (`nice = N`, [`crate::graph::NodeSpec::nice`]): a level whose nodes all ask
+//! for it runs at the lowest value they ask, so that the levels on the critical path take
+//! the cores first and it takes what they leave.
 //!
 //! A frame that ends the run (end of the stream, or a failure under `on_error = "abort"`) stops
 //! it at that frame: the frames before it complete, and the ones after it that earlier levels
@@ -34,6 +37,8 @@ pub(crate) struct Schedule<'a> {
     pub(crate) in_flight: u32,
     /// Threads of each level's pool.
     pub(crate) level_threads: &'a [usize],
+    /// Nice value of each level's pool's threads (0: the process's priority).
+    pub(crate) level_nice: &'a [u32],
     pub(crate) policy: ErrorPolicy,
 }
 
@@ -58,7 +63,8 @@ pub(crate) fn run(slots: &mut [Slot], schedule: &Schedule, env: &Env, collector:
     std::thread::scope(|scope| {
         let mut upstream: Option<Receiver<FrameState>> = None;
         let mut tokens = Some(tokens);
-        for ((offset, part), &threads) in parts.into_iter().zip(schedule.level_threads) {
+        let pools = schedule.level_threads.iter().zip(schedule.level_nice);
+        for ((offset, part), (&threads, &nice)) in parts.into_iter().zip(pools) {
             // A rendezvous channel: a level hands a frame on when the next one takes it.
             let (tx, rx) = sync_channel::<FrameState>(0);
             let input = match upstream.replace(rx) {
@@ -78,10 +84,15 @@ pub(crate) fn run(slots: &mut [Slot], schedule: &Schedule, env: &Env, collector:
                 // level would wait behind the tasks of the others (fusion's short parallel
                 // stages queued behind a depth pass), where with a pool each the system's
                 // scheduler shares the cores among the levels.
-                let pool = rayon::ThreadPoolBuilder::new()
+                let mut pool = rayon::ThreadPoolBuilder::new()
                     .num_threads(threads)
-                    .thread_name(move |i| format!("misslam-level{offset}-{i}"))
-                    .build();
+                    .thread_name(move |i| format!("misslam-level{offset}-{i}"));
+                if nice > 0 {
+                    pool = pool.start_handler(move |_| {
+                        crate::priority::lower_thread_priority(nice, "a pipelined level's pool")
+                    });
+                }
+                let pool = pool.build();
                 match pool {
                     Ok(pool) => pool.install(|| level.serve(input, schedule.frames, tx)),
                     Err(e) => {

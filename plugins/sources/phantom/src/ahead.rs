@@ -3,6 +3,7 @@
 //! rendered before the first one is handed out.
 
 use crate::{Phantom, PhantomFrame, PhantomNode};
+use misslam_framework::priority::lower_thread_priority;
 
 /// Renderers on threads of their own, each rendering every `n`-th frame from its own first
 /// one (`render_threads`); the node takes their frames in turn.
@@ -35,7 +36,7 @@ impl Ahead {
             let pool = rayon::ThreadPoolBuilder::new()
                 .num_threads(1)
                 .thread_name(move |_| format!("ph{id} render {k}"))
-                .start_handler(move |_| lower_priority(nice))
+                .start_handler(move |_| lower_thread_priority(nice, "source.phantom renderer"))
                 .build()
                 .map_err(|e| format!("could not start a phantom renderer: {e}"))?;
             // One frame waiting and one being rendered, per renderer.
@@ -89,35 +90,6 @@ impl Ahead {
         self.next += 1;
         Ok(frame)
     }
-}
-
-/// Lowers the calling thread's CPU priority to nice value `nice` (Linux: `setpriority` on a
-/// thread id sets that thread's alone); a thread already at `nice` or lower keeps its own. A
-/// refusal is logged and the thread keeps its priority.
-fn lower_priority(nice: u32) {
-    #[cfg(target_os = "linux")]
-    {
-        // SAFETY: `gettid`, `getpriority` and `setpriority` take no pointers and act on this
-        // thread only.
-        let (now, r) = unsafe {
-            let tid = libc::gettid() as libc::id_t;
-            let now = libc::getpriority(libc::PRIO_PROCESS, tid);
-            let r = if (nice as libc::c_int) > now {
-                libc::setpriority(libc::PRIO_PROCESS, tid, nice as libc::c_int)
-            } else {
-                0
-            };
-            (now, r)
-        };
-        if r != 0 {
-            tracing::warn!(
-                "source.phantom: could not lower a renderer's priority from nice {now} to {nice}: {}",
-                std::io::Error::last_os_error()
-            );
-        }
-    }
-    #[cfg(not(target_os = "linux"))]
-    let _ = nice;
 }
 
 /// Frames rendered up front, handed out in order.
