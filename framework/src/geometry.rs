@@ -1,7 +1,9 @@
-//! Small geometry shared by plugins: the rigid alignment of point sets (Kabsch / Horn), and the
-//! conversions between payload points (`[f32; 3]`) and solver vectors (`Vector3<f64>`).
+//! Small geometry shared by plugins: the rigid alignment of point sets (Kabsch / Horn), which
+//! vertices of a mesh a camera sees on a depth map, and the conversions between payload points
+//! (`[f32; 3]`) and solver vectors (`Vector3<f64>`).
 
-use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use crate::payload::{DepthMap, Mesh};
+use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 
 /// A payload point as a solver vector.
 #[inline]
@@ -44,4 +46,34 @@ pub fn align_rigid(src: &[Vector3<f64>], dst: &[Vector3<f64>]) -> Isometry3<f64>
         Translation3::from(t),
         UnitQuaternion::from_rotation_matrix(&r),
     )
+}
+
+/// Which vertices of `gt` (world frame) the camera at `world_from_camera` sees: in the image and
+/// within `max_gap` mm of the true depth at their pixel (in front of the surface, not behind a
+/// fold).
+pub fn seen_vertices(
+    gt: &Mesh,
+    world_from_camera: &Isometry3<f64>,
+    depth: &DepthMap,
+    max_gap: f32,
+) -> Vec<bool> {
+    let (w, h) = (depth.map.width as usize, depth.map.height as usize);
+    let c = &depth.calib;
+    let cfw = world_from_camera.inverse();
+    gt.vertices
+        .iter()
+        .map(|v| {
+            let p = cfw * Point3::new(v[0] as f64, v[1] as f64, v[2] as f64);
+            if p.z <= 0.0 || depth.map.data.len() != w * h {
+                return false;
+            }
+            let u = (c.fx * p.x / p.z + c.cx).round();
+            let r = (c.fy * p.y / p.z + c.cy).round();
+            if !(u >= 0.0 && r >= 0.0 && (u as usize) < w && (r as usize) < h) {
+                return false;
+            }
+            let z = depth.map.data[r as usize * w + u as usize] as f64;
+            (p.z - z).abs() <= max_gap as f64
+        })
+        .collect()
 }

@@ -40,7 +40,8 @@ use rayon::prelude::*;
 mod index;
 mod tracked;
 pub use index::{point_triangle_dist2, SurfaceIndex};
-pub use tracked::{seen_vertices, vertex_error, Drift, Observed};
+pub use misslam_framework::geometry::seen_vertices;
+pub use tracked::{vertex_error, Drift, Observed};
 
 /// Parameters of `eval.recon`.
 #[derive(Clone, Debug, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]

@@ -1,9 +1,9 @@
 //! What follows tissue points over time: the material drift of surfels or mesh vertices
 //! ([`Drift`]) and the error of a deformed template's vertices against the GT vertices they track
-//! ([`vertex_error`], over the vertices the true camera sees: [`seen_vertices`]).
+//! ([`vertex_error`], over the vertices the true camera sees:
+//! [`misslam_framework::geometry::seen_vertices`]).
 
 use crate::{bilinear, dot, sub, V3};
-use misslam_framework::nalgebra::{Isometry3, Point3};
 use misslam_framework::{DepthMap, Mesh, VertexMap};
 use rayon::prelude::*;
 use std::collections::HashMap;
@@ -166,34 +166,4 @@ impl Observed {
         let mean = |s: usize| (n[s] > 0).then(|| sum[s] / n[s] as f64);
         (mean(0), mean(1))
     }
-}
-
-/// Which vertices of `gt` (world frame) the camera at `world_from_camera` sees: in the image and
-/// within `max_gap` mm of the true depth at their pixel (in front of the surface, not behind a
-/// fold).
-pub fn seen_vertices(
-    gt: &Mesh,
-    world_from_camera: &Isometry3<f64>,
-    depth: &DepthMap,
-    max_gap: f32,
-) -> Vec<bool> {
-    let (w, h) = (depth.map.width as usize, depth.map.height as usize);
-    let c = &depth.calib;
-    let cfw = world_from_camera.inverse();
-    gt.vertices
-        .iter()
-        .map(|v| {
-            let p = cfw * Point3::new(v[0] as f64, v[1] as f64, v[2] as f64);
-            if p.z <= 0.0 || depth.map.data.len() != w * h {
-                return false;
-            }
-            let u = (c.fx * p.x / p.z + c.cx).round();
-            let r = (c.fy * p.y / p.z + c.cy).round();
-            if !(u >= 0.0 && r >= 0.0 && (u as usize) < w && (r as usize) < h) {
-                return false;
-            }
-            let z = depth.map.data[r as usize * w + u as usize] as f64;
-            (p.z - z).abs() <= max_gap as f64
-        })
-        .collect()
 }

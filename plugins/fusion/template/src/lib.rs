@@ -15,6 +15,10 @@
 //!
 //! Outputs the deformed template (world frame, coloured), the graph, the pose, the visible
 //! vertices, the field's zero level and the frame's figures.
+//!
+//! For ablations on the phantom, `oracle` adds exact correspondences from its ground truth (the
+//! template vertices the true camera sees, or all of them), and `data_term = "none"` drops the
+//! scan's term: what error remains is then the warp's own (`graphs/template_oracle.toml`).
 #![deny(missing_docs)]
 
 pub mod align;
@@ -29,9 +33,11 @@ use misslam_deformation_ed::graph::{Binding, EdGraph};
 use misslam_deformation_ed::observe::{
     color_at, color_quality, scan_from_depth_into, template_points, visible_points,
 };
-use misslam_deformation_ed::problem::{FieldJacobian, Intrinsics, ModelSubset, Problem, Scan};
+use misslam_deformation_ed::problem::{
+    Correspondence, FieldJacobian, Intrinsics, ModelSubset, Problem, Scan,
+};
 use misslam_deformation_ed::DistanceField;
-use misslam_framework::geometry::arr3;
+use misslam_framework::geometry::{arr3, seen_vertices, vec3};
 use misslam_framework::nalgebra::{Isometry3, Point3, Vector3};
 use misslam_framework::{
     BuildContext, BuildError, DepthMap, Features, Flow, FrameInfo, GpuContext, Image, Inputs, Mesh,
@@ -39,7 +45,7 @@ use misslam_framework::{
     Pose, Registry, StageClock, StereoFrame, TrackingState, TypedPlugin,
 };
 use misslam_fusion_surfel::corr;
-pub use params::{AlignMode, AlignParams, DataTerm, FieldParams, Params};
+pub use params::{AlignMode, AlignParams, DataTerm, FieldParams, OracleMode, OracleParams, Params};
 use scan_mesh::scan_mesh;
 use std::sync::Arc;
 use std::time::Instant;
@@ -77,6 +83,8 @@ pub struct TemplateNode {
     corr: corr::CorrTracker,
     /// The template has been solved once (`first_frame_motion` no longer applies).
     solved: bool,
+    /// With `oracle`: the vertices it pulled, summed over frames, and the frames.
+    oracle_points: (usize, usize),
 }
 
 /// The points of each triangle's barycentric grid of step 1/n other than its corners, the points
@@ -410,14 +418,21 @@ impl TemplateNode {
                         .insert("template.voxels".into(), f.values.len() as f64);
                     Some(f)
                 }
-                DataTerm::Projective => None,
+                DataTerm::Projective | DataTerm::None => None,
             };
             if field.is_some() {
                 st.lap("field");
             }
+            // With no dense data term the visible set feeds no rows (it still colours the
+            // template and is the `visible` output).
+            let fed: &[u32] = if self.p.data_term == DataTerm::None {
+                &[]
+            } else {
+                &visible
+            };
             self.subset
-                .gather(&visible, &model.points, &model.normals, &model.bindings);
-            let corrs = self
+                .gather(fed, &model.points, &model.normals, &model.bindings);
+            let mut corrs = self
                 .corr
                 .correspondences(
                     frame.index,
@@ -432,6 +447,15 @@ impl TemplateNode {
             metrics
                 .values
                 .insert("template.correspondences".into(), corrs.len() as f64);
+            if self.p.oracle.mode != OracleMode::Off {
+                let n = oracle_correspondences(inputs, &self.p.oracle, model, &mut corrs)
+                    .map_err(|e| NodeError::msg(format!("frame {}: oracle: {e}", frame.index)))?;
+                metrics
+                    .values
+                    .insert("template.oracle_points".into(), n as f64);
+                self.oracle_points.0 += n;
+                self.oracle_points.1 += 1;
+            }
             metrics
                 .values
                 .insert("template.anchors".into(), self.corr.anchors() as f64);
@@ -444,7 +468,7 @@ impl TemplateNode {
                         vertices: &self.vertices,
                         normals: &self.scan_normals,
                     }),
-                    DataTerm::Dff => None,
+                    DataTerm::Dff | DataTerm::None => None,
                 },
                 field: field.as_ref(),
                 correspondences: &corrs,
@@ -581,6 +605,59 @@ impl TemplateNode {
     }
 }
 
+/// Appends the oracle's E_corr constraints (see [`params::OracleParams`]): each template vertex
+/// the mode selects, pulled to GT vertex i in the true camera's frame. Returns how many.
+fn oracle_correspondences(
+    inputs: &Inputs,
+    p: &params::OracleParams,
+    model: &Model,
+    corrs: &mut Vec<Correspondence>,
+) -> Result<usize, String> {
+    let missing = |port: &str| {
+        format!("`oracle.mode` needs the `{port}` input connected (the phantom's `{port}`)")
+    };
+    let gt = inputs
+        .opt::<Mesh>("mesh_gt")
+        .map_err(|e| e.to_string())?
+        .ok_or_else(|| missing("mesh_gt"))?;
+    let pose_gt = inputs
+        .opt::<Pose>("pose_gt")
+        .map_err(|e| e.to_string())?
+        .ok_or_else(|| missing("pose_gt"))?;
+    if gt.vertices.len() != model.nv {
+        return Err(format!(
+            "mesh_gt has {} vertices and the template {}: the oracle needs the phantom's rest mesh as the template (vertex i the same tissue point as GT vertex i)",
+            gt.vertices.len(),
+            model.nv
+        ));
+    }
+    let seen = match p.mode {
+        OracleMode::Visible => {
+            let depth = inputs
+                .opt::<DepthMap>("depth_gt")
+                .map_err(|e| e.to_string())?
+                .ok_or_else(|| missing("depth_gt"))?;
+            seen_vertices(gt, &pose_gt.world_from_camera, depth, p.max_depth_gap_mm)
+        }
+        OracleMode::All => vec![true; model.nv],
+        OracleMode::Off => return Ok(0),
+    };
+    let cfw = pose_gt.world_from_camera.inverse();
+    let before = corrs.len();
+    corrs.extend(
+        seen.iter()
+            .enumerate()
+            .filter(|(_, &s)| s)
+            .map(|(i, _)| Correspondence {
+                point: model.points[i],
+                binding: model.bindings[i],
+                target: (cfw * Point3::from(vec3(gt.vertices[i]))).coords,
+                normal: None,
+            }),
+    );
+    Ok(corrs.len() - before)
+}
+
 /// The field's voxels within half a voxel of the zero level, in the world frame: what the solve
 /// pulled the template onto, to look at in the viewer.
 fn zero_level(f: &DistanceField, world_from_camera: &Isometry3<f64>) -> PointCloud {
@@ -625,6 +702,9 @@ impl Node for TemplateNode {
             ctx.report_eval("template.data_points", m.points.len() as f64);
             ctx.report_eval("template.nodes", m.graph.len() as f64);
         }
+        if let (n, frames @ 1..) = self.oracle_points {
+            ctx.report_eval("template.oracle_points", n as f64 / frames as f64);
+        }
         if let Some((before, after)) = self.align_rms {
             ctx.report_eval("template.align_rms_before_mm", before);
             ctx.report_eval("template.align_rms_after_mm", after);
@@ -665,6 +745,7 @@ pub fn build(p: Params, ctx: &BuildContext) -> Result<TemplateNode, BuildError> 
         gpu,
         corr: corr::CorrTracker::default(),
         solved: false,
+        oracle_points: (0, 0),
     })
 }
 
@@ -699,6 +780,21 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
                 PortType::Mesh,
                 "the pre-operative surface, world frame, read on the first frame (without template_path)",
             ),
+            PortSpec::optional(
+                "mesh_gt",
+                PortType::Mesh,
+                "with `oracle`: the phantom's true surface, world frame (vertex i the template's vertex i)",
+            ),
+            PortSpec::optional(
+                "pose_gt",
+                PortType::Pose,
+                "with `oracle`: the true world_from_camera",
+            ),
+            PortSpec::optional(
+                "depth_gt",
+                PortType::Depth,
+                "with `oracle.mode = \"visible\"`: the true depth, which says what the camera sees",
+            ),
         ],
         vec![
             PortSpec::new(
@@ -721,7 +817,7 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
             PortSpec::new(
                 "info",
                 PortType::Metrics,
-                "template.visible, nodes, field_ms, voxels, solve_ms, iterations, rejected_steps, costs, correspondences, anchors",
+                "template.visible, nodes, field_ms, voxels, solve_ms, iterations, rejected_steps, costs, correspondences, anchors, oracle_points",
             ),
         ],
         build,

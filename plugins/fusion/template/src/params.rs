@@ -23,6 +23,48 @@ pub enum DataTerm {
     /// Back-projection: each vertex is projected into the depth map and associated with the
     /// scan point at that pixel, point-to-plane, re-associated every iteration (the baseline).
     Projective,
+    /// No dense data term: only the sparse correspondences (`correspondences`) and the
+    /// `oracle`'s pull the template (an ablation).
+    None,
+}
+
+/// Which template vertices the oracle pulls to their true positions.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum OracleMode {
+    /// No oracle (every real use).
+    #[default]
+    Off,
+    /// The vertices the true camera sees on this frame: exact data where a scan has any, so
+    /// what the rest of the template does is the warp's extrapolation alone.
+    Visible,
+    /// Every vertex, seen or not: what the deformation graph can represent at all.
+    All,
+}
+
+/// Ground-truth correspondences for ablation studies on the phantom (an oracle, never for real
+/// data): template vertex i, which the phantom's rest mesh makes the same tissue point as GT
+/// vertex i, gets an E_corr constraint (weight `solver.weights.corr`, no normal) to that vertex's
+/// true position in the true camera's frame, from the `mesh_gt`, `pose_gt` and `depth_gt`
+/// inputs. With `data_term = "none"` and `correspondences.enabled = false` it is the only data:
+/// the error that remains is the warp's (its graph and its regularisation), not the scan's.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct OracleParams {
+    /// "off", "visible" or "all".
+    pub mode: OracleMode,
+    /// With "visible": a vertex is seen when its true depth is within this of `depth_gt` at its
+    /// pixel, mm (as `eval.recon`'s split into seen and never seen).
+    pub max_depth_gap_mm: f32,
+}
+
+impl Default for OracleParams {
+    fn default() -> Self {
+        OracleParams {
+            mode: OracleMode::Off,
+            max_depth_gap_mm: 1.0,
+        }
+    }
 }
 
 /// How the template is placed on the first frame.
@@ -116,7 +158,8 @@ pub struct Params {
     /// it is used even when the `template` input is connected; with `template_path` it is an
     /// error.
     pub template_from_scan: Option<ScanTemplateParams>,
-    /// "dff" (distance field) or "projective" (back-projection).
+    /// "dff" (distance field), "projective" (back-projection) or "none" (the sparse
+    /// correspondences and the oracle only).
     pub data_term: DataTerm,
     /// The distance field of each frame (with `data_term = "dff"`).
     pub field: FieldParams,
@@ -158,6 +201,8 @@ pub struct Params {
     /// coarse pre-operative mesh (vertices several mm apart) otherwise leaves few data rows per
     /// node.
     pub data_subdivision: u32,
+    /// Ground-truth correspondences, for ablations on the phantom (default off).
+    pub oracle: OracleParams,
 }
 
 impl Default for Params {
@@ -190,6 +235,7 @@ impl Default for Params {
             correspondences: CorrParams::default(),
             first_frame_motion: 3.0,
             data_subdivision: 1,
+            oracle: OracleParams::default(),
         }
     }
 }
@@ -264,6 +310,19 @@ impl Params {
             ));
         }
         positive(self.normal_max_step_mm as f64, "normal_max_step_mm")?;
+        positive(
+            self.oracle.max_depth_gap_mm as f64,
+            "oracle.max_depth_gap_mm",
+        )?;
+        if self.data_term == DataTerm::None
+            && !self.correspondences.enabled
+            && self.oracle.mode == OracleMode::Off
+        {
+            return Err(BuildError::param(
+                "data_term",
+                "\"none\" with `correspondences.enabled = false` and no `oracle` leaves nothing to pull the template onto the scan",
+            ));
+        }
         positive(self.visible_distance_mm, "visible_distance_mm")?;
         if !(self.visible_angle_deg > 0.0 && self.visible_angle_deg <= 180.0) {
             return Err(BuildError::param(
