@@ -50,21 +50,28 @@ pub fn align_rigid(src: &[Vector3<f64>], dst: &[Vector3<f64>]) -> Isometry3<f64>
 
 /// Which vertices of `gt` (world frame) the camera at `world_from_camera` sees: in the image and
 /// within `max_gap` mm of the true depth at their pixel (in front of the surface, not behind a
-/// fold).
+/// fold). A map whose values are not its width times its height is an error.
 pub fn seen_vertices(
     gt: &Mesh,
     world_from_camera: &Isometry3<f64>,
     depth: &DepthMap,
     max_gap: f32,
-) -> Vec<bool> {
+) -> Result<Vec<bool>, String> {
     let (w, h) = (depth.map.width as usize, depth.map.height as usize);
+    if depth.map.data.len() != w * h {
+        return Err(format!(
+            "the depth map has {} values for {w}x{h} pixels",
+            depth.map.data.len()
+        ));
+    }
     let c = &depth.calib;
     let cfw = world_from_camera.inverse();
-    gt.vertices
+    Ok(gt
+        .vertices
         .iter()
         .map(|v| {
             let p = cfw * Point3::new(v[0] as f64, v[1] as f64, v[2] as f64);
-            if p.z <= 0.0 || depth.map.data.len() != w * h {
+            if p.z <= 0.0 {
                 return false;
             }
             let u = (c.fx * p.x / p.z + c.cx).round();
@@ -75,5 +82,5 @@ pub fn seen_vertices(
             let z = depth.map.data[r as usize * w + u as usize] as f64;
             (p.z - z).abs() <= max_gap as f64
         })
-        .collect()
+        .collect())
 }

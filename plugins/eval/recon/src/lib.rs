@@ -284,7 +284,8 @@ impl Node for EvalRecon {
                     &g.world_from_camera,
                     depth,
                     self.params.drift_max_depth_gap_mm,
-                );
+                )
+                .map_err(|e| NodeError::msg(format!("frame {}: depth_gt: {e}", frame.index)))?;
                 let n = seen.iter().filter(|&&s| s).count();
                 if n > 0 {
                     let sum: f64 = points
@@ -599,7 +600,7 @@ mod tests {
                 baseline_mm: 5.0,
             },
         };
-        let seen = seen_vertices(&gt, &Isometry3::identity(), &depth, 1.0);
+        let seen = seen_vertices(&gt, &Isometry3::identity(), &depth, 1.0).unwrap();
         for (v, s) in gt.vertices.iter().zip(&seen) {
             let u = 40.0 * v[0] / 100.0 + 19.5;
             let r = 40.0 * v[1] / 100.0 + 14.5;
@@ -609,6 +610,11 @@ mod tests {
             assert_eq!(*s, in_view && !hidden, "{v:?}");
         }
         assert!(seen.iter().filter(|&&s| s).count() > 30);
+        // A map short of its width times its height is refused, not read as unseen.
+        let mut short = depth.clone();
+        short.map.data.pop();
+        let err = seen_vertices(&gt, &Isometry3::identity(), &short, 1.0).unwrap_err();
+        assert!(err.contains("1199 values for 40x30"), "{err}");
     }
 
     #[test]

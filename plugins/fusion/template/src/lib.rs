@@ -638,6 +638,7 @@ fn oracle_correspondences(
                 .map_err(|e| e.to_string())?
                 .ok_or_else(|| missing("depth_gt"))?;
             seen_vertices(gt, &pose_gt.world_from_camera, depth, p.max_depth_gap_mm)
+                .map_err(|e| format!("depth_gt: {e}"))?
         }
         OracleMode::All => vec![true; model.nv],
         OracleMode::Off => return Ok(0),
