@@ -219,6 +219,16 @@ pub struct Weights {
     /// held at their far side (the heart of `../shared/data/heart` moves 2.7 mm where the camera
     /// sees it and 0.5 mm behind); not for a whole organ shifting in view.
     pub unseen_motion: f64,
+    /// w_rot of the solved nodes no data term binds (as for `unseen_motion`; every node of the
+    /// decoupled solve's level II); unset, `rot`. Set high (1000) it holds the unseen part's nodes
+    /// to rotations while the seen part keeps the affine freedom that fits the scan: the unseen
+    /// tissue then follows the seen part as locally rigid instead of continuing its stretch. On
+    /// the phantom organs' templates this lowers the never-seen part's error; on a heart whose
+    /// back holds still while its front contracts it raises it (docs/template.md, session 42).
+    pub rot_unseen: Option<f64>,
+    /// w_reg of the edges with an end no data term binds; unset, `reg`. Lower than `reg`, the
+    /// unseen part bends more freely from the seen one.
+    pub reg_unseen: Option<f64>,
     /// w_r: rotation prior ||log(R~^T R)||^2 (rad^-2), when the pose is solved.
     pub pose_rot: f64,
     /// w_p: translation prior ||T - T~||^2 (mm^-2), when the pose is solved.
@@ -237,6 +247,8 @@ impl Default for Weights {
             corr_normal: 1.0,
             motion: 0.0,
             unseen_motion: 0.0,
+            rot_unseen: None,
+            reg_unseen: None,
             pose_rot: 1e4,
             pose_trans: 10.0,
         }
@@ -388,6 +400,8 @@ impl SolverParams {
             ("weights.corr_normal", w.corr_normal),
             ("weights.motion", w.motion),
             ("weights.unseen_motion", w.unseen_motion),
+            ("weights.rot_unseen", w.rot_unseen.unwrap_or(0.0)),
+            ("weights.reg_unseen", w.reg_unseen.unwrap_or(0.0)),
             ("weights.pose_rot", w.pose_rot),
             ("weights.pose_trans", w.pose_trans),
             ("initial_lambda", self.initial_lambda),

@@ -139,6 +139,57 @@ pub struct Solver {
     motion_ref: Vec<(u32, Vector3<f64>, f64)>,
     /// Per node: what binds it (the motion priors' scratch, see `set_motion_reference`).
     motion_bound: Vec<u8>,
+    /// Per node: no data term binds it (empty unless `weights.rot_unseen` or
+    /// `weights.reg_unseen` is set).
+    unbound: Vec<bool>,
+}
+
+/// The weights of E_rot and E_reg, node by node and edge by edge: `weights.rot` and
+/// `weights.reg`, or `weights.rot_unseen` on a node no data term binds and `weights.reg_unseen`
+/// on an edge with such an end.
+#[derive(Clone, Copy)]
+struct PriorWeights<'a> {
+    rot: f64,
+    reg: f64,
+    rot_unseen: f64,
+    reg_unseen: f64,
+    unbound: &'a [bool],
+}
+
+impl<'a> PriorWeights<'a> {
+    fn new(params: &SolverParams, unbound: &'a [bool]) -> Self {
+        let w = &params.weights;
+        PriorWeights {
+            rot: w.rot,
+            reg: w.reg,
+            rot_unseen: w.rot_unseen.unwrap_or(w.rot),
+            reg_unseen: w.reg_unseen.unwrap_or(w.reg),
+            unbound,
+        }
+    }
+
+    #[inline]
+    fn unbound(&self, j: u32) -> bool {
+        self.unbound.get(j as usize).copied().unwrap_or(false)
+    }
+
+    #[inline]
+    fn rot(&self, j: u32) -> f64 {
+        if self.unbound(j) {
+            self.rot_unseen
+        } else {
+            self.rot
+        }
+    }
+
+    #[inline]
+    fn reg(&self, j: u32, k: u32) -> f64 {
+        if self.unbound(j) || self.unbound(k) {
+            self.reg_unseen
+        } else {
+            self.reg
+        }
+    }
 }
 
 #[inline]
@@ -178,7 +229,16 @@ impl Solver {
         } else {
             self.cur = Pass::default();
         }
-        self.cur.cost_new + other_cost(&self.motion_ref, graph, problem, pose, set, params)
+        self.cur.cost_new
+            + other_cost(
+                &self.motion_ref,
+                &self.unbound,
+                graph,
+                problem,
+                pose,
+                set,
+                params,
+            )
     }
 
     /// Block pattern of `set`: edges between solved nodes and pairs of solved nodes that share a point.
@@ -300,11 +360,13 @@ impl Solver {
         let grad_only = mode == Assembly::GradientOnly;
         let reference = mode == Assembly::SerialReference;
         let w = &params.weights;
+        let pw = PriorWeights::new(params, &self.unbound);
         let sys = &mut self.system;
         // E_rot.
         for &j in &set.free {
             let s = sys.slot[j as usize];
             let (r, jac) = rot_residuals(&graph.warp[j as usize]);
+            let w_rot = pw.rot(j);
             let mut h = [0.0; 144];
             for a in 0..12 {
                 for c in 0..12 {
@@ -312,10 +374,10 @@ impl Solver {
                     for q in 0..6 {
                         acc += jac[q][a] * jac[q][c];
                     }
-                    h[c * 12 + a] = w.rot * acc;
+                    h[c * 12 + a] = w_rot * acc;
                 }
                 let g: f64 = (0..6).map(|q| jac[q][a] * r[q]).sum();
-                sys.grad[12 * s as usize + a] += w.rot * g;
+                sys.grad[12 * s as usize + a] += w_rot * g;
             }
             if !grad_only {
                 sys.add_diag(s, &h);
@@ -325,29 +387,30 @@ impl Solver {
         const E4: [f64; 4] = [0.0, 0.0, 0.0, 1.0];
         for &(j, k) in &set.reg_edges {
             let r = reg_residual(graph, j, k);
+            let w_reg = pw.reg(j, k);
             let d = graph.nodes()[k as usize] - graph.nodes()[j as usize];
             let u = [d.x, d.y, d.z, 1.0];
             let (sj, sk) = (sys.slot[j as usize], sys.slot[k as usize]);
             if sj != u32::MAX {
                 if !grad_only {
-                    sys.add_kron_identity(sj, sj, &u, &u, w.reg);
+                    sys.add_kron_identity(sj, sj, &u, &u, w_reg);
                 }
                 for m in 0..3 {
                     for c in 0..4 {
-                        sys.grad[12 * sj as usize + m * 4 + c] += w.reg * r[m] * u[c];
+                        sys.grad[12 * sj as usize + m * 4 + c] += w_reg * r[m] * u[c];
                     }
                 }
             }
             if sk != u32::MAX {
                 if !grad_only {
-                    sys.add_kron_identity(sk, sk, &E4, &E4, w.reg);
+                    sys.add_kron_identity(sk, sk, &E4, &E4, w_reg);
                 }
                 for m in 0..3 {
-                    sys.grad[12 * sk as usize + m * 4 + 3] -= w.reg * r[m];
+                    sys.grad[12 * sk as usize + m * 4 + 3] -= w_reg * r[m];
                 }
             }
             if sj != u32::MAX && sk != u32::MAX && !grad_only {
-                sys.add_kron_identity(sj, sk, &u, &E4, -w.reg);
+                sys.add_kron_identity(sj, sk, &u, &E4, -w_reg);
             }
         }
         // E_m and its unseen part: r = t_j - t_j^0.
@@ -549,7 +612,16 @@ impl Solver {
         if set.data {
             pass.run(graph, problem, pose, params, false, Some(&self.cur));
         }
-        pass.cost_old + other_cost(&self.motion_ref, graph, problem, pose, set, params)
+        pass.cost_old
+            + other_cost(
+                &self.motion_ref,
+                &self.unbound,
+                graph,
+                problem,
+                pose,
+                set,
+                params,
+            )
     }
 
     /// Number of projective associations at the last association.
@@ -557,9 +629,10 @@ impl Solver {
         self.cur.assoc.len()
     }
 
-    /// The motion priors' references, each with its weight: the translations now of the solved
-    /// nodes some model point binds (E_m, `weights.motion`) and of those no data term binds
-    /// (`weights.unseen_motion`).
+    /// The priors that depend on what binds each node: the motion priors' references, each with
+    /// its weight (the translations now of the solved nodes some model point binds, E_m,
+    /// `weights.motion`, and of those no data term binds, `weights.unseen_motion`), and the nodes
+    /// no data term binds, for `weights.rot_unseen` and `weights.reg_unseen`.
     fn set_motion_reference(
         &mut self,
         graph: &EdGraph,
@@ -568,9 +641,11 @@ impl Solver {
         params: &SolverParams,
     ) {
         self.motion_ref.clear();
+        self.unbound.clear();
         let w = &params.weights;
         let seen = if set.data { w.motion } else { 0.0 };
-        if seen == 0.0 && w.unseen_motion == 0.0 {
+        let split = w.rot_unseen.is_some() || w.reg_unseen.is_some();
+        if seen == 0.0 && w.unseen_motion == 0.0 && !split {
             return;
         }
         // Per node: bound by a model point (2), only by correspondences (1), by nothing (0).
@@ -588,6 +663,9 @@ impl Solver {
                     bound[x as usize] = 2;
                 }
             }
+        }
+        if split {
+            self.unbound.extend(bound.iter().map(|&b| b == 0));
         }
         for &j in &set.free {
             let wm = match bound[j as usize] {
@@ -657,7 +735,7 @@ impl Solver {
         // layout only. Each side reports its own time, so the two overlap in `Info`.
         let mut cur = std::mem::take(&mut self.cur);
         let (system, full) = (&mut self.system, self.full_factorisation);
-        let motion_ref = &self.motion_ref;
+        let (motion_ref, unbound) = (&self.motion_ref, &self.unbound);
         let ((key, prepared), (other, ms_pass)) = rayon::join(
             || {
                 let key = pattern_key(graph, problem, set, full);
@@ -671,7 +749,7 @@ impl Solver {
                 } else {
                     cur = Pass::default();
                 }
-                let other = other_cost(motion_ref, graph, problem, pose, set, params);
+                let other = other_cost(motion_ref, unbound, graph, problem, pose, set, params);
                 (other, ta.elapsed().as_secs_f64() * 1e3)
             },
         );
@@ -769,9 +847,10 @@ impl Solver {
                     // the new association (and its cost) is adopted with the step.
                     // The other terms' cost (serial) beside it.
                     let ta = Instant::now();
-                    let (next, cur, motion_ref) = (&mut self.next, &self.cur, &self.motion_ref);
+                    let (next, cur, motion_ref, unbound) =
+                        (&mut self.next, &self.cur, &self.motion_ref, &self.unbound);
                     let (other, ()) = rayon::join(
-                        || other_cost(motion_ref, graph, problem, pose, set, params),
+                        || other_cost(motion_ref, unbound, graph, problem, pose, set, params),
                         || {
                             if set.data {
                                 next.run(
@@ -860,6 +939,7 @@ impl Solver {
 /// E_corr, E_r, E_p) at the current state, with the motion priors `motion_ref`.
 fn other_cost(
     motion_ref: &[(u32, Vector3<f64>, f64)],
+    unbound: &[bool],
     graph: &EdGraph,
     problem: &Problem,
     pose: &Isometry3<f64>,
@@ -867,13 +947,14 @@ fn other_cost(
     params: &SolverParams,
 ) -> f64 {
     let w = &params.weights;
+    let pw = PriorWeights::new(params, unbound);
     let mut total = 0.0;
     for &j in &set.free {
         let (r, _) = rot_residuals(&graph.warp[j as usize]);
-        total += w.rot * r.iter().map(|x| x * x).sum::<f64>();
+        total += pw.rot(j) * r.iter().map(|x| x * x).sum::<f64>();
     }
     for &(j, k) in &set.reg_edges {
-        total += w.reg * reg_residual(graph, j, k).norm_squared();
+        total += pw.reg(j, k) * reg_residual(graph, j, k).norm_squared();
     }
     for (j, t0, wm) in motion_ref {
         let p = &graph.warp[*j as usize];

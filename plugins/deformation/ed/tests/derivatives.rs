@@ -7,7 +7,7 @@ mod common;
 
 use common::*;
 use misslam_deformation_ed::graph::rigid_warp;
-use misslam_deformation_ed::solver::pose_update;
+use misslam_deformation_ed::solver::{pose_update, reg_residual, rot_residuals};
 use misslam_deformation_ed::*;
 use misslam_framework::nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
@@ -111,6 +111,156 @@ fn analytic_gradient_matches_finite_differences_for_every_term() {
             "{robust:?}: worst relative gradient error {worst:e}"
         );
     }
+}
+
+#[test]
+fn the_unseen_parts_weights_enter_the_gradient_and_only_where_no_data_binds() {
+    // The sheet's points on its left third feed the data terms: the nodes only the others bind
+    // take `weights.rot_unseen` and their edges `weights.reg_unseen`.
+    let s = small_scene();
+    let mut graph = s.graph.clone();
+    let mut rng = Lcg(11);
+    for p in graph.warp.iter_mut() {
+        for x in p.iter_mut() {
+            *x += 0.03 * rng.next();
+        }
+    }
+    let (lo, hi) = s.points.iter().fold((f64::MAX, f64::MIN), |(lo, hi), p| {
+        (lo.min(p.x), hi.max(p.x))
+    });
+    let cut = lo + (hi - lo) / 3.0;
+    let half: Vec<usize> = (0..s.points.len())
+        .filter(|&i| s.points[i].x < cut)
+        .collect();
+    let hp: Vec<Vector3<f64>> = half.iter().map(|&i| s.points[i]).collect();
+    let hn: Vec<Vector3<f64>> = half.iter().map(|&i| s.normals[i]).collect();
+    let hb: Vec<Binding> = half.iter().map(|&i| s.bindings[i]).collect();
+    let hc: Vec<Correspondence> = s.corr.iter().filter(|c| c.point.x < cut).cloned().collect();
+    let mut bound = vec![false; graph.len()];
+    for b in hb.iter().chain(hc.iter().map(|c| &c.binding)) {
+        for &x in &b.nodes[..b.len as usize] {
+            bound[x as usize] = true;
+        }
+    }
+    let unbound = bound.iter().filter(|&&b| !b).count();
+    assert!(
+        unbound > 1 && unbound + 1 < graph.len(),
+        "{unbound} of {} nodes unbound",
+        graph.len()
+    );
+    let pose = Isometry3::identity();
+    let half_problem = Problem {
+        model: ModelPoints {
+            points: &hp,
+            normals: &hn,
+            bindings: &hb,
+        },
+        scan: Some(scan(&s.maps)),
+        field: Some(&s.field),
+        correspondences: &hc,
+        pose_prior: pose,
+    };
+    let params =
+        |rot: f64, reg: f64, rot_unseen: Option<f64>, reg_unseen: Option<f64>| SolverParams {
+            field_jacobian: FieldJacobian::Gradient,
+            weights: Weights {
+                rot,
+                reg,
+                rot_unseen,
+                reg_unseen,
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+    let split = params(1.0, 10.0, Some(30.0), Some(3.0));
+    let set = SolveSet::all(&graph, false);
+    let mut solver = Solver::default();
+    let (_, g, slot, cost) = solver
+        .linearize_dense(&graph, &pose, &half_problem, &set, &split)
+        .unwrap();
+    let scale = g.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+    let h = 1e-6;
+    let mut worst = 0.0f64;
+    for j in 0..graph.len() {
+        for q in 0..12 {
+            let mut gp = graph.clone();
+            gp.warp[j][q] += h;
+            let cp = solver.cost_fixed_association(&gp, &pose, &half_problem, &set, &split);
+            gp.warp[j][q] -= 2.0 * h;
+            let cm = solver.cost_fixed_association(&gp, &pose, &half_problem, &set, &split);
+            let fd = (cp - cm) / (2.0 * h) / 2.0;
+            worst = worst.max((fd - g[12 * slot[j] as usize + q]).abs() / scale);
+        }
+    }
+    assert!(worst < 1e-5, "worst relative gradient error {worst:e}");
+    // The cost is E_rot at 30 on the unbound nodes and at 1 on the others, E_reg at 3 on the
+    // edges with an unbound end (both directions), plus the data terms.
+    let (_, _, _, plain) = Solver::default()
+        .linearize_dense(
+            &graph,
+            &pose,
+            &half_problem,
+            &set,
+            &params(1.0, 10.0, None, None),
+        )
+        .unwrap();
+    let mut extra = 0.0;
+    for j in 0..graph.len() {
+        if !bound[j] {
+            let (r, _) = rot_residuals(&graph.warp[j]);
+            extra += 29.0 * r.iter().map(|x| x * x).sum::<f64>();
+        }
+        for &k in graph.neighbors(j) {
+            if !bound[j] || !bound[k as usize] {
+                extra -= 7.0 * reg_residual(&graph, j as u32, k).norm_squared();
+            }
+        }
+    }
+    assert!(
+        (cost - plain - extra).abs() < 1e-9 * cost,
+        "{cost} against {plain} + {extra}"
+    );
+    // Every node bound (the whole sheet feeds the data): the unseen weights change nothing.
+    let full_problem = Problem {
+        model: ModelPoints {
+            points: &s.points,
+            normals: &s.normals,
+            bindings: &s.bindings,
+        },
+        correspondences: &s.corr,
+        ..half_problem
+    };
+    let a = Solver::default()
+        .linearize_dense(&graph, &pose, &full_problem, &set, &split)
+        .unwrap();
+    let b = Solver::default()
+        .linearize_dense(
+            &graph,
+            &pose,
+            &full_problem,
+            &set,
+            &params(1.0, 10.0, None, None),
+        )
+        .unwrap();
+    assert_eq!(a, b);
+    // No data term in the solve (every node unbound): they replace w_rot and w_reg everywhere.
+    let no_data = SolveSet {
+        data: false,
+        ..set.clone()
+    };
+    let a = Solver::default()
+        .linearize_dense(&graph, &pose, &full_problem, &no_data, &split)
+        .unwrap();
+    let b = Solver::default()
+        .linearize_dense(
+            &graph,
+            &pose,
+            &full_problem,
+            &no_data,
+            &params(30.0, 3.0, None, None),
+        )
+        .unwrap();
+    assert_eq!(a, b);
 }
 
 #[test]

@@ -5,6 +5,7 @@
 mod common;
 
 use common::*;
+use misslam_deformation_ed::solver::rot_residuals;
 use misslam_deformation_ed::*;
 use misslam_framework::nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
@@ -452,6 +453,91 @@ fn the_unseen_motion_prior_fades_the_seen_motion_into_the_unseen_part() {
 }
 
 #[test]
+fn the_unseen_parts_rotation_weight_holds_it_rigid_while_the_seen_part_stretches() {
+    // The sheet's left part (x < -5 mm) is seen stretched by 5 % along x (and lifted 1 mm); the
+    // rest is not seen. With one w_rot everywhere (1, w_reg 10) the smooth affine field carries
+    // the stretch into the unseen part; with `weights.rot_unseen = 1000` the nodes no data binds
+    // stay rotations, and the seen part still fits.
+    let Sheet {
+        points,
+        normals,
+        graph: base,
+        bindings,
+        ..
+    } = Sheet::new(61, 41, 6.0);
+    let truth = |p: &Vector3<f64>| Vector3::new(1.05 * p.x, p.y, p.z + 1.0);
+    let seen: Vec<usize> = (0..points.len()).filter(|&i| points[i].x < -5.0).collect();
+    let sp: Vec<Vector3<f64>> = seen.iter().map(|&i| points[i]).collect();
+    let sn: Vec<Vector3<f64>> = seen.iter().map(|&i| normals[i]).collect();
+    let sb: Vec<Binding> = seen.iter().map(|&i| bindings[i]).collect();
+    let corr = correspondences(&points, &bindings, seen.iter().copied().step_by(2), |i| {
+        truth(&points[i])
+    });
+    let problem = Problem {
+        model: ModelPoints {
+            points: &sp,
+            normals: &sn,
+            bindings: &sb,
+        },
+        scan: None,
+        field: None,
+        correspondences: &corr,
+        pose_prior: Isometry3::identity(),
+    };
+    let solve = |rot_unseen: Option<f64>, decoupled: bool| -> EdGraph {
+        let mut params = SolverParams {
+            max_iterations: 20,
+            min_relative_decrease: 1e-12,
+            ..Default::default()
+        };
+        params.weights.rot_unseen = rot_unseen;
+        let mut graph = base.clone();
+        let dp = DecoupledParams {
+            level2_rings: 0,
+            level2_iterations: 6,
+            ..Default::default()
+        };
+        solve_once(&mut graph, &problem, &params, decoupled.then_some(&dp));
+        graph
+    };
+    // The nodes far from every seen point: no data binds them.
+    let far: Vec<usize> = (0..base.len())
+        .filter(|&j| base.nodes()[j].x > 12.0)
+        .collect();
+    assert!(!far.is_empty());
+    let stretch = |g: &EdGraph| {
+        far.iter()
+            .map(|&j| {
+                let (r, _) = rot_residuals(&g.warp[j]);
+                r.iter().map(|x| x * x).sum::<f64>().sqrt()
+            })
+            .sum::<f64>()
+            / far.len() as f64
+    };
+    let seen_error = |g: &EdGraph| {
+        seen.iter()
+            .map(|&i| (g.warp_point(&points[i], &bindings[i]) - truth(&points[i])).norm())
+            .sum::<f64>()
+            / seen.len() as f64
+    };
+    for decoupled in [false, true] {
+        let (one, split) = (solve(None, decoupled), solve(Some(1000.0), decoupled));
+        // An explicit value equal to `rot` is the same problem as none.
+        let same = solve(Some(1.0), decoupled);
+        assert_eq!(same.warp, one.warp);
+        let (s1, s2) = (stretch(&one), stretch(&split));
+        let (e1, e2) = (seen_error(&one), seen_error(&split));
+        eprintln!(
+            "decoupled {decoupled}: far unseen nodes' ||A^T A - I|| {s1:.4} with one w_rot, {s2:.5} with rot_unseen 1000; seen error {e1:.4} / {e2:.4} mm"
+        );
+        // A 5 % stretch is ||A^T A - I|| = 0.1025.
+        assert!(s1 > 0.05, "{s1}");
+        assert!(s2 < 0.1 * s1, "{s2} against {s1}");
+        assert!(e1 < 0.05 && e2 < 0.05, "{e1} {e2}");
+    }
+}
+
+#[test]
 fn the_camera_pose_alone_is_recovered_by_the_pose_unknowns() {
     // A static sheet seen from a camera that moved; the prior (tracker) is off by 1 degree and 1 mm
     // and weakly weighted, no node is solved: the data terms must bring the pose back.
@@ -564,6 +650,21 @@ fn bad_input_is_an_error_not_a_panic() {
     };
     let e = bad.validate().unwrap_err();
     assert!(e.contains("weights.unseen_motion"), "{e}");
+    for (rot_unseen, reg_unseen, name) in [
+        (Some(f64::INFINITY), None, "weights.rot_unseen"),
+        (None, Some(-1.0), "weights.reg_unseen"),
+    ] {
+        let bad = SolverParams {
+            weights: Weights {
+                rot_unseen,
+                reg_unseen,
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        let e = bad.validate().unwrap_err();
+        assert!(e.contains(name), "{e}");
+    }
     assert!(EdGraph::from_points(&[], GraphParams::default()).is_err());
     assert!(GraphParams {
         point_neighbors: 9,
