@@ -17,6 +17,7 @@ pub mod knn;
 pub mod node;
 pub mod observe;
 mod pairs;
+mod priors;
 pub mod problem;
 mod residuals;
 mod sampling;

@@ -14,6 +14,7 @@ use crate::assemble::DataAssembly;
 use crate::evaluate::Pass;
 use crate::graph::{Binding, EdGraph};
 use crate::pairs::pattern_key;
+use crate::priors::NodePriors;
 use crate::problem::{FieldJacobian, Method, Problem, SolverParams};
 use crate::residuals::pose_rot_residual;
 pub use crate::residuals::{pose_update, reg_residual, rot_residuals};
@@ -134,62 +135,9 @@ pub struct Solver {
     data: DataAssembly,
     dx: Vec<f64>,
     saved: Vec<[f64; 12]>,
-    /// The motion priors' references: (node, translation at the start of the solve, weight) of
-    /// each solved node a model point binds (E_m) or no data term binds (its unseen part).
-    motion_ref: Vec<(u32, Vector3<f64>, f64)>,
-    /// Per node: what binds it (the motion priors' scratch, see `set_motion_reference`).
-    motion_bound: Vec<u8>,
-    /// Per node: no data term binds it (empty unless `weights.rot_unseen` or
-    /// `weights.reg_unseen` is set).
-    unbound: Vec<bool>,
-}
-
-/// The weights of E_rot and E_reg, node by node and edge by edge: `weights.rot` and
-/// `weights.reg`, or `weights.rot_unseen` on a node no data term binds and `weights.reg_unseen`
-/// on an edge with such an end.
-#[derive(Clone, Copy)]
-struct PriorWeights<'a> {
-    rot: f64,
-    reg: f64,
-    rot_unseen: f64,
-    reg_unseen: f64,
-    unbound: &'a [bool],
-}
-
-impl<'a> PriorWeights<'a> {
-    fn new(params: &SolverParams, unbound: &'a [bool]) -> Self {
-        let w = &params.weights;
-        PriorWeights {
-            rot: w.rot,
-            reg: w.reg,
-            rot_unseen: w.rot_unseen.unwrap_or(w.rot),
-            reg_unseen: w.reg_unseen.unwrap_or(w.reg),
-            unbound,
-        }
-    }
-
-    #[inline]
-    fn unbound(&self, j: u32) -> bool {
-        self.unbound.get(j as usize).copied().unwrap_or(false)
-    }
-
-    #[inline]
-    fn rot(&self, j: u32) -> f64 {
-        if self.unbound(j) {
-            self.rot_unseen
-        } else {
-            self.rot
-        }
-    }
-
-    #[inline]
-    fn reg(&self, j: u32, k: u32) -> f64 {
-        if self.unbound(j) || self.unbound(k) {
-            self.reg_unseen
-        } else {
-            self.reg
-        }
-    }
+    /// The priors that depend on what binds each node (E_m, its unseen part, the unseen E_rot
+    /// and E_reg weights), set once per solve.
+    priors: NodePriors,
 }
 
 #[inline]
@@ -229,16 +177,7 @@ impl Solver {
         } else {
             self.cur = Pass::default();
         }
-        self.cur.cost_new
-            + other_cost(
-                &self.motion_ref,
-                &self.unbound,
-                graph,
-                problem,
-                pose,
-                set,
-                params,
-            )
+        self.cur.cost_new + other_cost(&self.priors, graph, problem, pose, set, params)
     }
 
     /// Block pattern of `set`: edges between solved nodes and pairs of solved nodes that share a point.
@@ -360,7 +299,7 @@ impl Solver {
         let grad_only = mode == Assembly::GradientOnly;
         let reference = mode == Assembly::SerialReference;
         let w = &params.weights;
-        let pw = PriorWeights::new(params, &self.unbound);
+        let pw = self.priors.weights(params);
         let sys = &mut self.system;
         // E_rot.
         for &j in &set.free {
@@ -414,7 +353,7 @@ impl Solver {
             }
         }
         // E_m and its unseen part: r = t_j - t_j^0.
-        for &(j, t0, wm) in &self.motion_ref {
+        for &(j, t0, wm) in self.priors.motion_ref() {
             let s = sys.slot[j as usize];
             if s == u32::MAX {
                 continue;
@@ -577,7 +516,7 @@ impl Solver {
         params: &SolverParams,
         reference: bool,
     ) -> Result<DenseLinearization, String> {
-        self.set_motion_reference(graph, problem, set, params);
+        self.priors.set(graph, problem, set, params);
         let key = self.pattern(graph, problem, set);
         self.system.prepare(graph.len(), &key)?;
         if set.data {
@@ -612,73 +551,12 @@ impl Solver {
         if set.data {
             pass.run(graph, problem, pose, params, false, Some(&self.cur));
         }
-        pass.cost_old
-            + other_cost(
-                &self.motion_ref,
-                &self.unbound,
-                graph,
-                problem,
-                pose,
-                set,
-                params,
-            )
+        pass.cost_old + other_cost(&self.priors, graph, problem, pose, set, params)
     }
 
     /// Number of projective associations at the last association.
     pub fn associations(&self) -> usize {
         self.cur.assoc.len()
-    }
-
-    /// The priors that depend on what binds each node: the motion priors' references, each with
-    /// its weight (the translations now of the solved nodes some model point binds, E_m,
-    /// `weights.motion`, and of those no data term binds, `weights.unseen_motion`), and the nodes
-    /// no data term binds, for `weights.rot_unseen` and `weights.reg_unseen`.
-    fn set_motion_reference(
-        &mut self,
-        graph: &EdGraph,
-        problem: &Problem,
-        set: &SolveSet,
-        params: &SolverParams,
-    ) {
-        self.motion_ref.clear();
-        self.unbound.clear();
-        let w = &params.weights;
-        let seen = if set.data { w.motion } else { 0.0 };
-        let split = w.rot_unseen.is_some() || w.reg_unseen.is_some();
-        if seen == 0.0 && w.unseen_motion == 0.0 && !split {
-            return;
-        }
-        // Per node: bound by a model point (2), only by correspondences (1), by nothing (0).
-        let bound = &mut self.motion_bound;
-        bound.clear();
-        bound.resize(graph.len(), 0);
-        if set.data {
-            for c in problem.correspondences {
-                for &x in &c.binding.nodes[..c.binding.len as usize] {
-                    bound[x as usize] = 1;
-                }
-            }
-            for b in problem.model.bindings {
-                for &x in &b.nodes[..b.len as usize] {
-                    bound[x as usize] = 2;
-                }
-            }
-        }
-        if split {
-            self.unbound.extend(bound.iter().map(|&b| b == 0));
-        }
-        for &j in &set.free {
-            let wm = match bound[j as usize] {
-                2 => seen,
-                1 => 0.0,
-                _ => w.unseen_motion,
-            };
-            if wm > 0.0 {
-                let p = &graph.warp[j as usize];
-                self.motion_ref
-                    .push((j, Vector3::new(p[3], p[7], p[11]), wm));
-            }
-        }
     }
 
     /// Runs the loop on `set`, updating `graph.warp` and `pose` in place.
@@ -727,7 +605,7 @@ impl Solver {
         }
         let builds0 = self.system.symbolic_builds;
         let tp = Instant::now();
-        self.set_motion_reference(graph, problem, set, params);
+        self.priors.set(graph, problem, set, params);
         // The first pass (the association at the start) and the other terms' starting cost need
         // no system: they run beside the pattern key and the system's layout. A new layout's
         // factor structures (the elimination plan, the scalar layouts and the symbolic
@@ -735,7 +613,7 @@ impl Solver {
         // layout only. Each side reports its own time, so the two overlap in `Info`.
         let mut cur = std::mem::take(&mut self.cur);
         let (system, full) = (&mut self.system, self.full_factorisation);
-        let (motion_ref, unbound) = (&self.motion_ref, &self.unbound);
+        let priors = &self.priors;
         let ((key, prepared), (other, ms_pass)) = rayon::join(
             || {
                 let key = pattern_key(graph, problem, set, full);
@@ -749,7 +627,7 @@ impl Solver {
                 } else {
                     cur = Pass::default();
                 }
-                let other = other_cost(motion_ref, unbound, graph, problem, pose, set, params);
+                let other = other_cost(priors, graph, problem, pose, set, params);
                 (other, ta.elapsed().as_secs_f64() * 1e3)
             },
         );
@@ -847,10 +725,9 @@ impl Solver {
                     // the new association (and its cost) is adopted with the step.
                     // The other terms' cost (serial) beside it.
                     let ta = Instant::now();
-                    let (next, cur, motion_ref, unbound) =
-                        (&mut self.next, &self.cur, &self.motion_ref, &self.unbound);
+                    let (next, cur, priors) = (&mut self.next, &self.cur, &self.priors);
                     let (other, ()) = rayon::join(
-                        || other_cost(motion_ref, unbound, graph, problem, pose, set, params),
+                        || other_cost(priors, graph, problem, pose, set, params),
                         || {
                             if set.data {
                                 next.run(
@@ -936,10 +813,9 @@ impl Solver {
 }
 
 /// The terms other than the projective and field data on the model points (E_rot, E_reg,
-/// E_corr, E_r, E_p) at the current state, with the motion priors `motion_ref`.
+/// E_corr, E_r, E_p) at the current state, with the node priors `priors`.
 fn other_cost(
-    motion_ref: &[(u32, Vector3<f64>, f64)],
-    unbound: &[bool],
+    priors: &NodePriors,
     graph: &EdGraph,
     problem: &Problem,
     pose: &Isometry3<f64>,
@@ -947,7 +823,7 @@ fn other_cost(
     params: &SolverParams,
 ) -> f64 {
     let w = &params.weights;
-    let pw = PriorWeights::new(params, unbound);
+    let pw = priors.weights(params);
     let mut total = 0.0;
     for &j in &set.free {
         let (r, _) = rot_residuals(&graph.warp[j as usize]);
@@ -956,7 +832,7 @@ fn other_cost(
     for &(j, k) in &set.reg_edges {
         total += pw.reg(j, k) * reg_residual(graph, j, k).norm_squared();
     }
-    for (j, t0, wm) in motion_ref {
+    for (j, t0, wm) in priors.motion_ref() {
         let p = &graph.warp[*j as usize];
         total += wm * (Vector3::new(p[3], p[7], p[11]) - t0).norm_squared();
     }

@@ -364,6 +364,65 @@ fn decoupled_solves_only_the_seen_nodes_first_and_the_unseen_follow_rigidly() {
     assert!(info.pi_solved < dec.len() - pr);
 }
 
+/// The sheet's left part (x < -5 mm) as a solve's data: its points for the data terms and
+/// correspondences on every other one to `truth`; the rest of the sheet is unseen.
+struct SeenPart {
+    seen: Vec<usize>,
+    points: Vec<Vector3<f64>>,
+    normals: Vec<Vector3<f64>>,
+    bindings: Vec<Binding>,
+    corr: Vec<Correspondence>,
+}
+
+impl SeenPart {
+    fn left(sheet: &Sheet, truth: impl Fn(&Vector3<f64>) -> Vector3<f64>) -> Self {
+        let (points, bindings) = (&sheet.points, &sheet.bindings);
+        let seen: Vec<usize> = (0..points.len()).filter(|&i| points[i].x < -5.0).collect();
+        let corr = correspondences(points, bindings, seen.iter().copied().step_by(2), |i| {
+            truth(&points[i])
+        });
+        SeenPart {
+            points: seen.iter().map(|&i| points[i]).collect(),
+            normals: seen.iter().map(|&i| sheet.normals[i]).collect(),
+            bindings: seen.iter().map(|&i| bindings[i]).collect(),
+            seen,
+            corr,
+        }
+    }
+
+    fn problem(&self) -> Problem<'_> {
+        Problem {
+            model: ModelPoints {
+                points: &self.points,
+                normals: &self.normals,
+                bindings: &self.bindings,
+            },
+            scan: None,
+            field: None,
+            correspondences: &self.corr,
+            pose_prior: Isometry3::identity(),
+        }
+    }
+}
+
+/// Solves a copy of `base`: batch, or decoupled with no ring of level II nodes in level I.
+fn solve_copy(
+    base: &EdGraph,
+    problem: &Problem,
+    params: &SolverParams,
+    decoupled: bool,
+    level2_iterations: usize,
+) -> EdGraph {
+    let mut graph = base.clone();
+    let dp = DecoupledParams {
+        level2_rings: 0,
+        level2_iterations,
+        ..Default::default()
+    };
+    solve_once(&mut graph, problem, params, decoupled.then_some(&dp));
+    graph
+}
+
 #[test]
 fn the_unseen_motion_prior_fades_the_seen_motion_into_the_unseen_part() {
     // The sheet's left part (x < -5 mm) moves 1 mm along z and is seen; the rest is not. As
@@ -371,32 +430,12 @@ fn the_unseen_motion_prior_fades_the_seen_motion_into_the_unseen_part() {
     // with the prior (`weights.unseen_motion = 1`, w_reg 10, nodes 6 mm apart) its nodes move
     // less the farther they are from the seen part, in both solvers, and the seen part still
     // fits.
-    let Sheet {
-        points,
-        normals,
-        graph: base,
-        bindings,
-        ..
-    } = Sheet::new(61, 41, 6.0);
+    let sheet = Sheet::new(61, 41, 6.0);
+    let (points, bindings, base) = (&sheet.points, &sheet.bindings, &sheet.graph);
     let t = Vector3::new(0.0, 0.0, 1.0);
-    let seen: Vec<usize> = (0..points.len()).filter(|&i| points[i].x < -5.0).collect();
-    let sp: Vec<Vector3<f64>> = seen.iter().map(|&i| points[i]).collect();
-    let sn: Vec<Vector3<f64>> = seen.iter().map(|&i| normals[i]).collect();
-    let sb: Vec<Binding> = seen.iter().map(|&i| bindings[i]).collect();
-    let corr = correspondences(&points, &bindings, seen.iter().copied().step_by(2), |i| {
-        points[i] + t
-    });
-    let problem = Problem {
-        model: ModelPoints {
-            points: &sp,
-            normals: &sn,
-            bindings: &sb,
-        },
-        scan: None,
-        field: None,
-        correspondences: &corr,
-        pose_prior: Isometry3::identity(),
-    };
+    let part = SeenPart::left(&sheet, |p| p + t);
+    let seen = &part.seen;
+    let problem = part.problem();
     let solve = |unseen_motion: f64, decoupled: bool| -> EdGraph {
         let mut params = SolverParams {
             max_iterations: 15,
@@ -404,14 +443,7 @@ fn the_unseen_motion_prior_fades_the_seen_motion_into_the_unseen_part() {
             ..Default::default()
         };
         params.weights.unseen_motion = unseen_motion;
-        let mut graph = base.clone();
-        let dp = DecoupledParams {
-            level2_rings: 0,
-            level2_iterations: 4,
-            ..Default::default()
-        };
-        solve_once(&mut graph, &problem, &params, decoupled.then_some(&dp));
-        graph
+        solve_copy(base, &problem, &params, decoupled, 4)
     };
     // Mean z shift of the nodes with x in [lo, hi), and the seen points' mean error.
     let shift = |g: &EdGraph, lo: f64, hi: f64| {
@@ -458,32 +490,12 @@ fn the_unseen_parts_rotation_weight_holds_it_rigid_while_the_seen_part_stretches
     // rest is not seen. With one w_rot everywhere (1, w_reg 10) the smooth affine field carries
     // the stretch into the unseen part; with `weights.rot_unseen = 1000` the nodes no data binds
     // stay rotations, and the seen part still fits.
-    let Sheet {
-        points,
-        normals,
-        graph: base,
-        bindings,
-        ..
-    } = Sheet::new(61, 41, 6.0);
+    let sheet = Sheet::new(61, 41, 6.0);
+    let (points, bindings, base) = (&sheet.points, &sheet.bindings, &sheet.graph);
     let truth = |p: &Vector3<f64>| Vector3::new(1.05 * p.x, p.y, p.z + 1.0);
-    let seen: Vec<usize> = (0..points.len()).filter(|&i| points[i].x < -5.0).collect();
-    let sp: Vec<Vector3<f64>> = seen.iter().map(|&i| points[i]).collect();
-    let sn: Vec<Vector3<f64>> = seen.iter().map(|&i| normals[i]).collect();
-    let sb: Vec<Binding> = seen.iter().map(|&i| bindings[i]).collect();
-    let corr = correspondences(&points, &bindings, seen.iter().copied().step_by(2), |i| {
-        truth(&points[i])
-    });
-    let problem = Problem {
-        model: ModelPoints {
-            points: &sp,
-            normals: &sn,
-            bindings: &sb,
-        },
-        scan: None,
-        field: None,
-        correspondences: &corr,
-        pose_prior: Isometry3::identity(),
-    };
+    let part = SeenPart::left(&sheet, truth);
+    let seen = &part.seen;
+    let problem = part.problem();
     let solve = |rot_unseen: Option<f64>, decoupled: bool| -> EdGraph {
         let mut params = SolverParams {
             max_iterations: 20,
@@ -491,14 +503,7 @@ fn the_unseen_parts_rotation_weight_holds_it_rigid_while_the_seen_part_stretches
             ..Default::default()
         };
         params.weights.rot_unseen = rot_unseen;
-        let mut graph = base.clone();
-        let dp = DecoupledParams {
-            level2_rings: 0,
-            level2_iterations: 6,
-            ..Default::default()
-        };
-        solve_once(&mut graph, &problem, &params, decoupled.then_some(&dp));
-        graph
+        solve_copy(base, &problem, &params, decoupled, 6)
     };
     // The nodes far from every seen point: no data binds them.
     let far: Vec<usize> = (0..base.len())
