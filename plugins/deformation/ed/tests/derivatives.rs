@@ -11,6 +11,18 @@ use misslam_deformation_ed::solver::{pose_update, reg_residual, rot_residuals};
 use misslam_deformation_ed::*;
 use misslam_framework::nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
+/// `graph` with every warp parameter moved by up to `amp`, pseudo-randomly from `seed`.
+fn perturbed(graph: &EdGraph, seed: u64, amp: f64) -> EdGraph {
+    let mut graph = graph.clone();
+    let mut rng = Lcg(seed);
+    for p in graph.warp.iter_mut() {
+        for x in p.iter_mut() {
+            *x += amp * rng.next();
+        }
+    }
+    graph
+}
+
 /// The largest difference between the analytic gradient `g` (with its node slots) and central
 /// finite differences of the cost at the solver's last association, over every node unknown,
 /// relative to the gradient's largest entry.
@@ -43,13 +55,7 @@ fn worst_node_gradient_error(
 #[test]
 fn analytic_gradient_matches_finite_differences_for_every_term() {
     let s = small_scene();
-    let mut graph = s.graph.clone();
-    let mut rng = Lcg(7);
-    for p in graph.warp.iter_mut() {
-        for x in p.iter_mut() {
-            *x += 0.03 * rng.next();
-        }
-    }
+    let graph = perturbed(&s.graph, 7, 0.03);
     let prior = Isometry3::from_parts(
         Translation3::new(0.2, -0.1, 0.3),
         UnitQuaternion::from_euler_angles(0.01, -0.02, 0.015),
@@ -136,13 +142,7 @@ fn the_unseen_parts_weights_enter_the_gradient_and_only_where_no_data_binds() {
     // The sheet's points on its left third feed the data terms: the nodes only the others bind
     // take `weights.rot_unseen` and their edges `weights.reg_unseen`.
     let s = small_scene();
-    let mut graph = s.graph.clone();
-    let mut rng = Lcg(11);
-    for p in graph.warp.iter_mut() {
-        for x in p.iter_mut() {
-            *x += 0.03 * rng.next();
-        }
-    }
+    let graph = perturbed(&s.graph, 11, 0.03);
     let (lo, hi) = s.points.iter().fold((f64::MAX, f64::MIN), |(lo, hi), p| {
         (lo.min(p.x), hi.max(p.x))
     });
@@ -266,13 +266,7 @@ fn the_parallel_assembly_equals_the_serial_reference_on_any_number_of_threads() 
     // a robust kernel, a perturbed warp; once over every node, once over a subset with the rest
     // held fixed (the decoupled solver's level I shape, some couplings half outside).
     let s = small_scene();
-    let mut graph = s.graph.clone();
-    let mut rng = Lcg(11);
-    for p in graph.warp.iter_mut() {
-        for x in p.iter_mut() {
-            *x += 0.02 * rng.next();
-        }
-    }
+    let graph = perturbed(&s.graph, 11, 0.02);
     let pose = Isometry3::from_parts(
         Translation3::new(0.1, 0.05, -0.2),
         UnitQuaternion::from_euler_angles(-0.01, 0.01, 0.02),
