@@ -179,6 +179,31 @@ fn fusion_takes_post_processings_maps_or_lifts_the_depth_itself() {
 }
 
 #[test]
+fn a_search_distance_of_infinity_means_no_limit() {
+    // `inf` is how a parameter says "no limit"; binning the surfels for the anchoring in the
+    // keypoints' box grown by an infinite `anchor_distance_mm` once hung the run. Run on its own
+    // thread, so that a hang fails the test instead of stalling the suite.
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let e = run(
+            &[
+                "graph.frames.count=4",
+                "fusion.correspondences.anchor_distance_mm=inf",
+            ],
+            "infinite_anchor_distance",
+        );
+        let _ = tx.send(e);
+    });
+    let e = rx
+        .recv_timeout(std::time::Duration::from_secs(300))
+        .expect("the run ends");
+    let (mean, anchors) = (e["recon.mean_mm"], e["fusion.anchors"]);
+    eprintln!("anchor_distance_mm = inf: recon {mean:.4} mm, {anchors} anchors");
+    assert!(mean.is_finite() && mean < 0.5, "{mean}");
+    assert!(anchors > 0.0, "{anchors}");
+}
+
+#[test]
 fn fusion_says_when_the_depth_stops_meeting_the_model() {
     // The scope jumps by up to 20 mm between frames but fusion is given no pose: the depth lands
     // beyond the association distance, most samples become new surfels, and that is counted.

@@ -60,11 +60,16 @@ impl GridIndex {
         };
         let finite = |p: &Vector3<f64>| p.iter().all(|c| c.is_finite());
         let (lo, hi) = match bounds {
-            Some(b) => b,
-            None => {
+            Some((lo, hi)) if finite(&lo) && finite(&hi) => (lo, hi),
+            // No box, or one open on some side (a search radius of infinity): the box of the
+            // finite points in it, so that the cells stay finite.
+            open => {
+                let within = |p: &Vector3<f64>| {
+                    open.is_none_or(|(lo, hi)| (0..3).all(|a| p[a] >= lo[a] && p[a] <= hi[a]))
+                };
                 let mut lo = Vector3::repeat(f64::INFINITY);
                 let mut hi = Vector3::repeat(f64::NEG_INFINITY);
-                for p in points.iter().filter(|p| finite(p)) {
+                for p in points.iter().filter(|p| finite(p) && within(p)) {
                     lo = lo.inf(p);
                     hi = hi.sup(p);
                 }
@@ -175,15 +180,10 @@ impl GridIndex {
     /// Visits the cells of the cube shell at Chebyshev radius `r` around `c`.
     #[inline]
     fn shell(&self, c: [i64; 3], r: i64, mut visit: impl FnMut(&[u32])) {
-        for z in c[2] - r..=c[2] + r {
-            if z < 0 || z >= self.dims[2] {
-                continue;
-            }
+        // The shell's rows within the grid only (a query far outside it skips no cell by cell).
+        for z in (c[2] - r).max(0)..=(c[2] + r).min(self.dims[2] - 1) {
             let zedge = (z - c[2]).abs() == r;
-            for y in c[1] - r..=c[1] + r {
-                if y < 0 || y >= self.dims[1] {
-                    continue;
-                }
+            for y in (c[1] - r).max(0)..=(c[1] + r).min(self.dims[1] - 1) {
                 let yedge = zedge || (y - c[1]).abs() == r;
                 if yedge {
                     // The row's cells are consecutive: their points are one run of `items`.
@@ -263,10 +263,12 @@ impl GridIndex {
             return None;
         }
         let c = self.coords(q);
-        let cells = (radius / self.cell).ceil() as i64;
+        // No shell beyond the grid's far corner holds a cell (and an infinite radius ends there).
+        let (near, far) = self.shell_range(c);
+        let cells = ((radius / self.cell).ceil() as i64).min(far);
         let mut best: Option<(f64, u32)> = None;
         let r2 = radius * radius;
-        for r in 0..=cells {
+        for r in near..=cells {
             self.shell(c, r, |ids| {
                 for &i in ids {
                     let d2 = (points[i as usize] - q).norm_squared();
@@ -418,5 +420,47 @@ mod tests {
             grid.nearest_within(&pts, &Vector3::repeat(-8.5), radius),
             None
         );
+    }
+
+    #[test]
+    fn an_infinite_radius_and_an_open_box_find_the_nearest_point_and_end() {
+        // `fusion.surfel`'s anchoring bins the surfels in the keypoints' box grown by the search
+        // radius, and searches that radius: `anchor_distance_mm = inf` once hung the run here.
+        let mut s = 99u64;
+        let mut rnd = move || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (s >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let pts: Vec<Vector3<f64>> = (0..300)
+            .map(|_| Vector3::new(30.0 * rnd(), 20.0 * rnd(), 5.0 * rnd() + 80.0))
+            .collect();
+        let inf = f64::INFINITY;
+        let mut grid = GridIndex::default();
+        for (lo, hi) in [
+            (Vector3::repeat(-inf), Vector3::repeat(inf)),
+            // Open on one side only: the points with x >= 10 are binned.
+            (Vector3::new(10.0, -inf, -inf), Vector3::repeat(inf)),
+        ] {
+            grid.rebuild(&pts, Some((lo, hi)), inf);
+            assert!(grid.cell.is_finite() && grid.origin.iter().all(|c| c.is_finite()));
+            let binned: Vec<u32> = (0..pts.len() as u32)
+                .filter(|&i| pts[i as usize].x >= lo.x)
+                .collect();
+            assert_eq!(grid.len(), binned.len());
+            // Queries inside the points' box, and far outside it.
+            for q in [
+                Vector3::new(15.0, 10.0, 82.0),
+                Vector3::new(-500.0, 3.0, 81.0),
+                Vector3::new(1e6, -1e6, 0.0),
+            ] {
+                let want = binned
+                    .iter()
+                    .map(|&i| ((pts[i as usize] - q).norm_squared(), i))
+                    .min_by(|a, b| a.0.total_cmp(&b.0));
+                assert_eq!(grid.nearest_within(&pts, &q, inf), want, "q {q:?}");
+            }
+        }
     }
 }
