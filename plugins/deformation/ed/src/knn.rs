@@ -92,17 +92,21 @@ impl GridIndex {
         let dims_at = |h: f64| {
             let mut d = [0i64; 3];
             for a in 0..3 {
-                d[a] = (((hi[a] - lo[a]) / h).floor() as i64 + 1).max(1);
+                // Saturating: a stray point 1e30 mm off must coarsen the cells, not wrap.
+                d[a] = (((hi[a] - lo[a]) / h).floor() as i64)
+                    .saturating_add(1)
+                    .max(1);
             }
             d
         };
         let limit = (n_in as i64 * CELLS_PER_POINT).max(MIN_CELLS);
         self.dims = dims_at(cell);
-        while self.dims.iter().product::<i64>() > limit {
+        let cells = |d: &[i64; 3]| d.iter().fold(1i64, |n, &x| n.saturating_mul(x));
+        while cells(&self.dims) > limit {
             self.cell *= 2.0;
             self.dims = dims_at(self.cell);
         }
-        let ncell = self.dims.iter().product::<i64>() as usize;
+        let ncell = cells(&self.dims) as usize;
         let mut cell_of = std::mem::take(&mut self.cell_of);
         cell_of.clear();
         let of = |p: &Vector3<f64>| {
@@ -461,6 +465,28 @@ mod tests {
                     .min_by(|a, b| a.0.total_cmp(&b.0));
                 assert_eq!(grid.nearest_within(&pts, &q, inf), want, "q {q:?}");
             }
+        }
+    }
+
+    #[test]
+    fn a_point_astronomically_far_off_coarsens_the_cells_instead_of_overflowing() {
+        // A corrupt mesh vertex at 1e30 mm: the cell counts per axis saturate i64, and their
+        // product once wrapped, so that the cell array's size overflowed (a panic).
+        let mut points: Vec<Vector3<f64>> = (0..200)
+            .map(|i| Vector3::new((i % 20) as f64, (i / 20) as f64, 50.0))
+            .collect();
+        points.push(Vector3::new(1e30, -1e30, 1e30));
+        points.push(Vector3::new(-1e300, 1e300, 0.0));
+        let grid = GridIndex::build(&points, 8.0);
+        assert_eq!(grid.len(), points.len());
+        let mut out = Vec::new();
+        for q in [
+            Vector3::new(3.2, 4.9, 50.0),
+            Vector3::new(1e30, -1e30, 1e30),
+        ] {
+            grid.knn(&points, &q, 3, &mut out);
+            let got: Vec<u32> = out.iter().map(|e| e.1).collect();
+            assert_eq!(got, brute(&points, &q, 3), "q {q:?}");
         }
     }
 }
