@@ -344,3 +344,77 @@ inputs = { metrics = "depth.metrics", pose = "src.pose_gt" }
     let poses = std::fs::read_to_string(out.join("files/pose.txt")).unwrap();
     assert_eq!(poses.lines().count(), 3, "{poses}");
 }
+
+/// An `.npy` array of shape (frames, vertices, 3), f4.
+fn npy_f32(frames: usize, positions: &[[f32; 3]]) -> Vec<u8> {
+    let header = format!(
+        "{{'descr': '<f4', 'fortran_order': False, 'shape': ({frames}, {}, 3), }}",
+        positions.len() / frames
+    );
+    let mut h = header;
+    while !(10 + h.len() + 1).is_multiple_of(64) {
+        h.push(' ');
+    }
+    h.push('\n');
+    let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
+    bytes.extend((h.len() as u16).to_le_bytes());
+    bytes.extend(h.as_bytes());
+    for c in positions.iter().flatten() {
+        bytes.extend(c.to_le_bytes());
+    }
+    bytes
+}
+
+#[test]
+fn a_mesh_or_trajectory_far_beyond_an_organ_is_refused_naming_the_position() {
+    // A corrupt vertex 54 m off once had the phantom bake its albedo (every 0.1 mm over the
+    // mesh's box) for hours; a template is checked the same way (`tests/template.rs`).
+    let dir = common::tmp_dir("phantom-stray-vertex");
+    std::fs::create_dir_all(&dir).unwrap();
+    // A 30 x 30 mm sheet of 4 x 4 vertices.
+    let grid: Vec<[f32; 3]> = (0..16)
+        .map(|i| [10.0 * (i % 4) as f32, 10.0 * (i / 4) as f32, 0.0])
+        .collect();
+    let mut obj: String = grid
+        .iter()
+        .map(|v| format!("v {} {} {}\n", v[0], v[1], v[2]))
+        .collect();
+    for y in 0..3 {
+        for x in 0..3 {
+            let i = y * 4 + x + 1;
+            obj += &format!("f {} {} {} {}\n", i, i + 1, i + 5, i + 4);
+        }
+    }
+    let sheet = dir.join("sheet.obj");
+    std::fs::write(&sheet, &obj).unwrap();
+    let mut moving: Vec<[f32; 3]> = (0..3)
+        .flat_map(|f| grid.iter().map(move |v| [v[0], v[1], 0.3 * f as f32]))
+        .collect();
+    let good = dir.join("good.npy");
+    std::fs::write(&good, npy_f32(3, &moving)).unwrap();
+    moving[2 * 16 + 1][2] = -53_816.9;
+    let bad = dir.join("bad.npy");
+    std::fs::write(&bad, npy_f32(3, &moving)).unwrap();
+    let stray = dir.join("stray.obj");
+    std::fs::write(&stray, obj.replacen("v 10 0 0", "v 6e19 0 0", 1)).unwrap();
+    let open = |mesh: &std::path::Path, trajectory: Option<&std::path::Path>| {
+        let p = misslam_source_phantom::Params {
+            mesh: Some(mesh.to_path_buf()),
+            vertex_trajectory: trajectory.map(|t| t.to_path_buf()),
+            width: 64,
+            height: 48,
+            focal_px: 70.0,
+            distance_mm: 80.0,
+            ..Default::default()
+        };
+        misslam_source_phantom::Phantom::new(p, 0).map(|_| ())
+    };
+    open(&sheet, Some(&good)).unwrap();
+    let e = open(&sheet, Some(&bad)).unwrap_err();
+    assert!(
+        e.contains("bad.npy") && e.contains("frame 2, vertex 1 ") && e.contains("along z"),
+        "{e}"
+    );
+    let e = open(&stray, None).unwrap_err();
+    assert!(e.contains("stray.obj") && e.contains("vertex 1 "), "{e}");
+}

@@ -799,6 +799,24 @@ fn bad_template_input_is_refused_with_the_field_or_frame() {
         };
         assert!(msg.contains(needle), "`{set}`: {msg}");
     }
+    // A template with a vertex 6e19 mm off (a corrupt byte): refused, naming the vertex.
+    let dir = common::tmp_dir("template_stray");
+    std::fs::create_dir_all(&dir).unwrap();
+    let stray = dir.join("stray.obj");
+    std::fs::write(
+        &stray,
+        "v 0 0 0\nv 10 0 0\nv 0 10 0\nv 6e19 10 0\nf 1 2 3\nf 2 4 3\n",
+    )
+    .unwrap();
+    let set = format!("fusion.template_path=\"{}\"", stray.display());
+    let e = match misslam::framework::Runtime::build(load(&[&set]).unwrap()) {
+        Err(e) => e.to_string(),
+        Ok(_) => panic!("a template 6e19 mm wide was accepted"),
+    };
+    assert!(
+        e.contains("template_path") && e.contains("vertex 3 ") && e.contains("millimetres"),
+        "{e}"
+    );
     // No template at all: the first frame fails, naming both ways to give one.
     let graph = EXACT_GRAPH.replace(", template = \"src.mesh_rest\"", "");
     assert!(!graph.contains("src.mesh_rest"));

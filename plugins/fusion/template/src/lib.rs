@@ -129,6 +129,8 @@ pub fn surface_samples(
 /// Reads a template file into a mesh with normals.
 pub fn read_template(path: &std::path::Path) -> Result<Mesh, String> {
     let m = misslam_source_phantom::mesh_input::read_mesh(path)?;
+    misslam_source_phantom::mesh_input::check_extent(&m.vertices, m.vertices.len())
+        .map_err(|e| format!("{}: {e}", path.display()))?;
     if m.triangles.is_empty() {
         return Err(format!(
             "{}: the template has no triangles (a surface is needed for its normals)",

@@ -150,7 +150,8 @@ impl Default for FieldParams {
 #[serde(deny_unknown_fields, default)]
 pub struct Params {
     /// The pre-operative mesh (OBJ or PLY in mm, glTF in metres), relative to the working
-    /// directory; without it the `template` input is read on the first frame.
+    /// directory; without it the `template` input is read on the first frame. A mesh spanning
+    /// more than 1 m along an axis is refused, naming its farthest vertex.
     pub template_path: Option<PathBuf>,
     /// Without a pre-operative mesh: the first frame's scan, triangulated on a pixel grid, is
     /// the template (e.g. `template_from_scan = { stride_px = 4, max_edge_mm = 3.0 }`); the

@@ -42,9 +42,11 @@ pub struct Params {
     pub scene: Scene,
     /// A template surface to render instead of a procedural organ (OBJ, PLY in mm; glTF in m), e.g.
     /// `../shared/data/heart/heart.obj`; its bounding-box centre is placed `distance_mm` ahead.
+    /// A mesh spanning more than 1 m along an axis is refused, naming its farthest vertex.
     pub mesh: Option<PathBuf>,
     /// Per-frame vertex positions of `mesh` (`.npy`, frames x vertices x 3, mm), e.g.
-    /// `../shared/data/heart/heart_trajectory.npy`; the sequence loops over its frames.
+    /// `../shared/data/heart/heart_trajectory.npy`; the sequence loops over its frames. All of
+    /// its positions together must lie within 1 m along each axis.
     pub vertex_trajectory: Option<PathBuf>,
     /// Frame rate of `vertex_trajectory`, Hz (default: `fps`).
     pub trajectory_fps: Option<f64>,
@@ -463,6 +465,8 @@ impl Phantom {
             }
             Some(path) => {
                 let m = mesh_input::read_mesh(path)?;
+                mesh_input::check_extent(&m.vertices, m.vertices.len())
+                    .map_err(|e| format!("{}: {e}", path.display()))?;
                 let (vertices, frames) = match &p.vertex_trajectory {
                     None => (m.vertices.clone(), None),
                     Some(tp) => {
@@ -475,6 +479,8 @@ impl Phantom {
                                 m.vertices.len()
                             ));
                         }
+                        mesh_input::check_extent(&data, nv)
+                            .map_err(|e| format!("`vertex_trajectory` {}: {e}", tp.display()))?;
                         (data[..nv].to_vec(), Some((nf, data)))
                     }
                 };

@@ -319,6 +319,60 @@ pub fn parse_obj(text: &str) -> Result<MeshData, String> {
     })
 }
 
+/// The most an organ's mesh, or its motion, may span along an axis, mm. An organ, or a whole
+/// abdomen, is well under it: beyond it the file is corrupt or not in millimetres (and the
+/// phantom, which bakes its albedo every 0.1 mm over the mesh's box, would need gigabytes).
+pub const MAX_EXTENT_MM: f32 = 1000.0;
+
+/// Checks that `positions` (`per_frame` vertices a frame, frame after frame; one frame for a
+/// mesh) span at most [`MAX_EXTENT_MM`] along each axis. The error names the position farthest
+/// from the median along the widest axis: its frame (where there are several) and vertex.
+pub fn check_extent(positions: &[[f32; 3]], per_frame: usize) -> Result<(), String> {
+    let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+    for p in positions {
+        for a in 0..3 {
+            lo[a] = lo[a].min(p[a]);
+            hi[a] = hi[a].max(p[a]);
+        }
+    }
+    let span = |a: usize| hi[a] - lo[a];
+    let axis = (0..3).fold(0, |w, a| if span(a) > span(w) { a } else { w });
+    if !(span(axis) > MAX_EXTENT_MM) {
+        return Ok(());
+    }
+    let mut along: Vec<f32> = positions.iter().map(|p| p[axis]).collect();
+    let mid = along.len() / 2;
+    let median = *along.select_nth_unstable_by(mid, f32::total_cmp).1;
+    let (i, p) = positions
+        .iter()
+        .enumerate()
+        .max_by(|a, b| {
+            (a.1[axis] - median)
+                .abs()
+                .total_cmp(&(b.1[axis] - median).abs())
+        })
+        .expect("a span needs positions");
+    let at = if positions.len() > per_frame.max(1) {
+        format!(
+            "frame {}, vertex {}",
+            i / per_frame.max(1),
+            i % per_frame.max(1)
+        )
+    } else {
+        format!("vertex {i}")
+    };
+    let span = if span(axis) < 1e7 {
+        format!("{:.0}", span(axis))
+    } else {
+        format!("{:.1e}", span(axis))
+    };
+    Err(format!(
+        "the positions span {span} mm along {}, more than the {MAX_EXTENT_MM} mm an organ can \
+         (corrupt, or not in millimetres?); the farthest out is {at} at {p:?}",
+        ["x", "y", "z"][axis],
+    ))
+}
+
 /// Reads an `.npy` array of shape (frames, vertices, 3) as f32.
 pub fn read_npy_frames(path: &Path) -> Result<(usize, usize, Vec<[f32; 3]>), String> {
     let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
@@ -466,5 +520,41 @@ mod tests {
         assert!(parse_npy_frames(&bytes[..bytes.len() - 4])
             .unwrap_err()
             .contains("needed"));
+    }
+
+    #[test]
+    fn an_organ_sized_span_passes_and_a_stray_position_is_named() {
+        // A 90 mm organ, 30 vertices, with 0.5 mm of motion over 4 frames.
+        let organ: Vec<[f32; 3]> = (0..30)
+            .map(|i| [3.0 * i as f32, (i % 5) as f32, 100.0])
+            .collect();
+        assert!(check_extent(&organ, organ.len()).is_ok());
+        let mut frames: Vec<[f32; 3]> = (0..4)
+            .flat_map(|f| {
+                organ
+                    .iter()
+                    .map(move |v| [v[0], v[1], v[2] + 0.5 * f as f32 / 3.0])
+            })
+            .collect();
+        assert!(check_extent(&frames, organ.len()).is_ok());
+        // Exactly the limit is allowed.
+        let edge = [[0.0, 0.0, 0.0], [MAX_EXTENT_MM, 0.0, 0.0]];
+        assert!(check_extent(&edge, 2).is_ok());
+        // A corrupt byte: vertex 7 of frame 2, 54 m off along z.
+        frames[2 * 30 + 7][2] = -53_816.9;
+        let e = check_extent(&frames, organ.len()).unwrap_err();
+        assert!(
+            e.contains("frame 2, vertex 7") && e.contains("along z"),
+            "{e}"
+        );
+        // One frame: the vertex alone; the widest axis is the one named.
+        let mut mesh = organ.clone();
+        mesh[12] = [5.99e19, -60.0, 94.8];
+        mesh[3][1] = 2_000.0;
+        let e = check_extent(&mesh, mesh.len()).unwrap_err();
+        assert!(
+            e.contains("vertex 12 ") && e.contains("along x") && e.contains("6.0e19"),
+            "{e}"
+        );
     }
 }
