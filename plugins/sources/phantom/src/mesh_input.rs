@@ -337,7 +337,7 @@ pub fn check_extent(positions: &[[f32; 3]], per_frame: usize) -> Result<(), Stri
     }
     let span = |a: usize| hi[a] - lo[a];
     let axis = (0..3).fold(0, |w, a| if span(a) > span(w) { a } else { w });
-    if !(span(axis) > MAX_EXTENT_MM) {
+    if span(axis) <= MAX_EXTENT_MM {
         return Ok(());
     }
     let mut along: Vec<f32> = positions.iter().map(|p| p[axis]).collect();
