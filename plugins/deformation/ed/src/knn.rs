@@ -306,6 +306,16 @@ mod tests {
         all.iter().take(k).map(|e| e.1).collect()
     }
 
+    /// Uniform numbers in [0, 1) from a linear congruential generator seeded with `s`.
+    fn lcg(mut s: u64) -> impl FnMut() -> f64 {
+        move || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (s >> 11) as f64 / (1u64 << 53) as f64
+        }
+    }
+
     #[test]
     fn floor_i64_is_floor() {
         for x in [
@@ -328,14 +338,8 @@ mod tests {
 
     #[test]
     fn knn_matches_brute_force_inside_and_far_outside_the_set() {
-        // A deterministic scatter (LCG) in a 100 x 40 x 10 box.
-        let mut s = 12345u64;
-        let mut rnd = || {
-            s = s
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (s >> 11) as f64 / (1u64 << 53) as f64
-        };
+        // A deterministic scatter in a 100 x 40 x 10 box.
+        let mut rnd = lcg(12345);
         let points: Vec<Vector3<f64>> = (0..500)
             .map(|_| Vector3::new(rnd() * 100.0, rnd() * 40.0, rnd() * 10.0))
             .collect();
@@ -430,13 +434,7 @@ mod tests {
     fn an_infinite_radius_and_an_open_box_find_the_nearest_point_and_end() {
         // `fusion.surfel`'s anchoring bins the surfels in the keypoints' box grown by the search
         // radius, and searches that radius: `anchor_distance_mm = inf` once hung the run here.
-        let mut s = 99u64;
-        let mut rnd = move || {
-            s = s
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (s >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut rnd = lcg(99);
         let pts: Vec<Vector3<f64>> = (0..300)
             .map(|_| Vector3::new(30.0 * rnd(), 20.0 * rnd(), 5.0 * rnd() + 80.0))
             .collect();

@@ -379,6 +379,27 @@ pub fn read_npy_frames(path: &Path) -> Result<(usize, usize, Vec<[f32; 3]>), Str
     parse_npy_frames(&bytes).map_err(|e| format!("{}: {e}", path.display()))
 }
 
+/// `.npy` bytes (version 1, little-endian f32, C order) of shape (frames, vertices, 3) holding
+/// `positions`, frame after frame: what [`parse_npy_frames`] reads.
+pub fn encode_npy_frames(frames: usize, positions: &[[f32; 3]]) -> Vec<u8> {
+    let per_frame = positions.len().checked_div(frames).unwrap_or(0);
+    let mut h = format!(
+        "{{'descr': '<f4', 'fortran_order': False, 'shape': ({frames}, {per_frame}, 3), }}"
+    );
+    // The header is padded with spaces to a multiple of 64 bytes, ending in a newline.
+    while !(10 + h.len() + 1).is_multiple_of(64) {
+        h.push(' ');
+    }
+    h.push('\n');
+    let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
+    bytes.extend((h.len() as u16).to_le_bytes());
+    bytes.extend(h.as_bytes());
+    for c in positions.iter().flatten() {
+        bytes.extend(c.to_le_bytes());
+    }
+    bytes
+}
+
 /// Parses `.npy` bytes of shape (frames, vertices, 3).
 pub fn parse_npy_frames(bytes: &[u8]) -> Result<(usize, usize, Vec<[f32; 3]>), String> {
     if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
@@ -502,18 +523,9 @@ mod tests {
 
     #[test]
     fn npy_round_trip() {
-        let header = "{'descr': '<f4', 'fortran_order': False, 'shape': (2, 1, 3), }";
-        let mut h = header.to_string();
-        while !(10 + h.len() + 1).is_multiple_of(64) {
-            h.push(' ');
-        }
-        h.push('\n');
-        let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
-        bytes.extend((h.len() as u16).to_le_bytes());
-        bytes.extend(h.as_bytes());
-        for v in [1.0f32, 2.0, 3.0, 4.0, 5.0, 6.0] {
-            bytes.extend(v.to_le_bytes());
-        }
+        let bytes = encode_npy_frames(2, &[[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]);
+        assert_eq!(&bytes[10..30], b"{'descr': '<f4', 'fo");
+        assert_eq!((bytes.len() - 24) % 64, 0, "the header pads to 64 bytes");
         let (f, v, data) = parse_npy_frames(&bytes).unwrap();
         assert_eq!((f, v), (2, 1));
         assert_eq!(data, vec![[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]);

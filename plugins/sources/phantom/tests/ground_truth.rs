@@ -4,6 +4,7 @@
 #![allow(clippy::unwrap_used)] // test code: a failed unwrap is the test failing
 
 use misslam_framework::nalgebra::{Point3, Vector3};
+use misslam_source_phantom::mesh_input::encode_npy_frames;
 use misslam_source_phantom::scene::{Scene, Trajectory};
 use misslam_source_phantom::{Params, Phantom, PhantomFrame};
 
@@ -609,16 +610,7 @@ fn a_trajectory_for_another_mesh_is_refused() {
     )
     .unwrap();
     // A (1, 2, 3) f4 array: two vertices, the mesh has three.
-    let mut h = "{'descr': '<f4', 'fortran_order': False, 'shape': (1, 2, 3), }".to_string();
-    while !(10 + h.len() + 1).is_multiple_of(64) {
-        h.push(' ');
-    }
-    h.push('\n');
-    let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
-    bytes.extend((h.len() as u16).to_le_bytes());
-    bytes.extend(h.as_bytes());
-    bytes.extend([0u8; 24]);
-    std::fs::write(dir.join("traj.npy"), bytes).unwrap();
+    std::fs::write(dir.join("traj.npy"), encode_npy_frames(1, &[[0.0; 3]; 2])).unwrap();
     let e = Phantom::new(
         Params {
             mesh: Some(dir.join("tri.obj")),
@@ -634,4 +626,59 @@ fn a_trajectory_for_another_mesh_is_refused() {
             && e.ends_with("tri.obj has 3"),
         "{e}"
     );
+}
+
+#[test]
+fn a_mesh_or_trajectory_far_beyond_an_organ_is_refused_naming_the_position() {
+    // A corrupt vertex 54 m off once had the phantom bake its albedo (every 0.1 mm over the
+    // mesh's box) for hours; a template is checked the same way (the workspace's
+    // `tests/template.rs`).
+    let dir = std::env::temp_dir().join(format!("misslam-phantom-stray-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    // A 30 x 30 mm sheet of 4 x 4 vertices.
+    let grid: Vec<[f32; 3]> = (0..16)
+        .map(|i| [10.0 * (i % 4) as f32, 10.0 * (i / 4) as f32, 0.0])
+        .collect();
+    let mut obj: String = grid
+        .iter()
+        .map(|v| format!("v {} {} {}\n", v[0], v[1], v[2]))
+        .collect();
+    for y in 0..3 {
+        for x in 0..3 {
+            let i = y * 4 + x + 1;
+            obj += &format!("f {} {} {} {}\n", i, i + 1, i + 5, i + 4);
+        }
+    }
+    let sheet = dir.join("sheet.obj");
+    std::fs::write(&sheet, &obj).unwrap();
+    let mut moving: Vec<[f32; 3]> = (0..3)
+        .flat_map(|f| grid.iter().map(move |v| [v[0], v[1], 0.3 * f as f32]))
+        .collect();
+    let good = dir.join("good.npy");
+    std::fs::write(&good, encode_npy_frames(3, &moving)).unwrap();
+    moving[2 * 16 + 1][2] = -53_816.9;
+    let bad = dir.join("bad.npy");
+    std::fs::write(&bad, encode_npy_frames(3, &moving)).unwrap();
+    let stray = dir.join("stray.obj");
+    std::fs::write(&stray, obj.replacen("v 10 0 0", "v 6e19 0 0", 1)).unwrap();
+    let open = |mesh: &std::path::Path, trajectory: Option<&std::path::Path>| {
+        let p = Params {
+            mesh: Some(mesh.to_path_buf()),
+            vertex_trajectory: trajectory.map(|t| t.to_path_buf()),
+            width: 64,
+            height: 48,
+            focal_px: 70.0,
+            distance_mm: 80.0,
+            ..Default::default()
+        };
+        Phantom::new(p, 0).map(|_| ())
+    };
+    open(&sheet, Some(&good)).unwrap();
+    let e = open(&sheet, Some(&bad)).unwrap_err();
+    assert!(
+        e.contains("bad.npy") && e.contains("frame 2, vertex 1 ") && e.contains("along z"),
+        "{e}"
+    );
+    let e = open(&stray, None).unwrap_err();
+    assert!(e.contains("stray.obj") && e.contains("vertex 1 "), "{e}");
 }
