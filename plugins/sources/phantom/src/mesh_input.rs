@@ -328,6 +328,7 @@ pub const MAX_EXTENT_MM: f32 = 1000.0;
 /// mesh) span at most [`MAX_EXTENT_MM`] along each axis. The error names the position farthest
 /// from the median along the widest axis: its frame (where there are several) and vertex.
 pub fn check_extent(positions: &[[f32; 3]], per_frame: usize) -> Result<(), String> {
+    let per_frame = per_frame.max(1);
     let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
     for p in positions {
         for a in 0..3 {
@@ -343,21 +344,17 @@ pub fn check_extent(positions: &[[f32; 3]], per_frame: usize) -> Result<(), Stri
     let mut along: Vec<f32> = positions.iter().map(|p| p[axis]).collect();
     let mid = along.len() / 2;
     let median = *along.select_nth_unstable_by(mid, f32::total_cmp).1;
-    let (i, p) = positions
-        .iter()
-        .enumerate()
-        .max_by(|a, b| {
-            (a.1[axis] - median)
-                .abs()
-                .total_cmp(&(b.1[axis] - median).abs())
-        })
-        .expect("a span needs positions");
-    let at = if positions.len() > per_frame.max(1) {
-        format!(
-            "frame {}, vertex {}",
-            i / per_frame.max(1),
-            i % per_frame.max(1)
-        )
+    let farthest = positions.iter().enumerate().max_by(|a, b| {
+        (a.1[axis] - median)
+            .abs()
+            .total_cmp(&(b.1[axis] - median).abs())
+    });
+    // A span over the limit has positions; the let-else only spares a panic path.
+    let Some((i, p)) = farthest else {
+        return Ok(());
+    };
+    let at = if positions.len() > per_frame {
+        format!("frame {}, vertex {}", i / per_frame, i % per_frame)
     } else {
         format!("vertex {i}")
     };
