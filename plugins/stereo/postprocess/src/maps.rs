@@ -54,19 +54,7 @@ pub fn specular_mask(
     dilate_px: usize,
 ) -> Vec<u8> {
     let c = channels.max(1);
-    // The saturation test as a table: per brightest value `hi`, the largest spread `hi - lo`
-    // whose saturation, computed as above, is at most `max_saturation` (-1: none). The division
-    // is monotonic in the spread, so `spread <= widest[hi]` is the test itself, without a
-    // division per pixel.
-    let widest: [i16; 256] = std::array::from_fn(|hi| {
-        (0..=hi)
-            .rev()
-            .find(|&d| {
-                let sat = if hi == 0 { 0.0 } else { d as f32 / hi as f32 };
-                sat <= max_saturation
-            })
-            .map_or(-1, |d| d as i16)
-    });
+    let widest = widest_spreads(max_saturation);
     let test =
         |hi: u8, lo: u8| (hi >= min_value && i16::from(hi - lo) <= widest[hi as usize]) as u8;
     let mut m = vec![0u8; data.len() / c];
@@ -95,6 +83,22 @@ pub fn specular_mask(
         m = dilate(&m, width, height, dilate_px);
     }
     m
+}
+
+/// The specular saturation test as a table: per brightest value `hi`, the largest spread
+/// `hi - lo` whose saturation `(hi - lo) / hi` is at most `max_saturation` (-1: none). The
+/// division is monotonic in the spread, so `spread <= widest[hi]` is the test itself, without a
+/// division per pixel (the GPU kernel reads the same table).
+pub(crate) fn widest_spreads(max_saturation: f32) -> [i16; 256] {
+    std::array::from_fn(|hi| {
+        (0..=hi)
+            .rev()
+            .find(|&d| {
+                let sat = if hi == 0 { 0.0 } else { d as f32 / hi as f32 };
+                sat <= max_saturation
+            })
+            .map_or(-1, |d| d as i16)
+    })
 }
 
 /// Square dilation of a 0/1 mask by `r` pixels (separable max filter: a row pass, then a column
@@ -143,22 +147,11 @@ pub fn bilateral(
     sigma_px: f32,
     sigma_mm: f32,
 ) -> Vec<f32> {
-    let r = radius as i64;
-    let spatial: Vec<f32> = (-r..=r)
-        .flat_map(|dy| {
-            (-r..=r)
-                .map(move |dx| (-((dx * dx + dy * dy) as f32) / (2.0 * sigma_px * sigma_px)).exp())
-        })
-        .collect();
-    // Range weights from a table over |d| in [0, 4 sigma) (beyond it the weight is below
-    // 3.4e-4 and taken as 0): no exp per neighbour.
-    let lut_scale = RANGE_LUT as f32 / (4.0 * sigma_mm);
-    // Index RANGE_LUT: beyond the table, weight 0.
-    let mut range = [0.0f32; RANGE_LUT + 1];
-    for (k, r) in range.iter_mut().take(RANGE_LUT).enumerate() {
-        let d = (k as f32 + 0.5) / lut_scale;
-        *r = (-(d * d) / (2.0 * sigma_mm * sigma_mm)).exp();
-    }
+    let BilateralTables {
+        spatial,
+        range,
+        lut_scale,
+    } = BilateralTables::new(radius, sigma_px, sigma_mm);
     // Invalid pixels become a far value: their range weight is 0 and 0 times it adds +0, so the
     // loops need no branch and every valid pixel gets the same sums, in the same tap order.
     let far = sanitize(depth);
@@ -187,10 +180,47 @@ pub fn bilateral(
 }
 
 /// Entries of the bilateral filter's range-weight table (one more, 0, for beyond it).
-const RANGE_LUT: usize = 1024;
+pub(crate) const RANGE_LUT: usize = 1024;
+
+/// The bilateral filter's weights, as the CPU and the GPU kernel read them.
+pub(crate) struct BilateralTables {
+    /// Spatial weights of the (2 radius + 1)^2 window, row by row.
+    pub spatial: Vec<f32>,
+    /// Range weights over |d| in [0, 4 sigma), RANGE_LUT of them, then 0 (beyond the table).
+    pub range: [f32; RANGE_LUT + 1],
+    /// Table entries per mm of depth difference.
+    pub lut_scale: f32,
+}
+
+impl BilateralTables {
+    pub(crate) fn new(radius: usize, sigma_px: f32, sigma_mm: f32) -> Self {
+        let r = radius as i64;
+        let spatial: Vec<f32> = (-r..=r)
+            .flat_map(|dy| {
+                (-r..=r).map(move |dx| {
+                    (-((dx * dx + dy * dy) as f32) / (2.0 * sigma_px * sigma_px)).exp()
+                })
+            })
+            .collect();
+        // Range weights from a table over |d| in [0, 4 sigma) (beyond it the weight is below
+        // 3.4e-4 and taken as 0): no exp per neighbour.
+        let lut_scale = RANGE_LUT as f32 / (4.0 * sigma_mm);
+        // Index RANGE_LUT: beyond the table, weight 0.
+        let mut range = [0.0f32; RANGE_LUT + 1];
+        for (k, r) in range.iter_mut().take(RANGE_LUT).enumerate() {
+            let d = (k as f32 + 0.5) / lut_scale;
+            *r = (-(d * d) / (2.0 * sigma_mm * sigma_mm)).exp();
+        }
+        BilateralTables {
+            spatial,
+            range,
+            lut_scale,
+        }
+    }
+}
 
 /// Stand-in for invalid pixels in the bilateral filter: farther than any range weight reaches.
-const FAR: f32 = 1e30;
+pub(crate) const FAR: f32 = 1e30;
 
 fn sanitize(depth: &[f32]) -> Vec<f32> {
     depth
