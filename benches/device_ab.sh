@@ -13,7 +13,8 @@
 #
 # BINARY may be gzipped (`.gz`); `@...` adds `--set` overrides for that variant only, e.g.
 #   benches/device_ab.sh 3 base=.dev/base.gz new=.dev/new.gz \
-#       nice=.dev/new.gz@recon.nice=10,recon_world.nice=10,export.nice=10
+#       nice=.dev/new.gz@recon.nice=10,recon_world.nice=10,export.nice=10 \
+#       gpupost=.dev/new.gz@post.device=gpu
 # FRAMES (default 150) and EXTRA (more `--set` arguments for every variant) are read from the
 # environment.
 #

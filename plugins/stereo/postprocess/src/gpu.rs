@@ -323,14 +323,20 @@ impl PostGpu {
         enc.copy_buffer_to_buffer(&f.vertices, 0, &f.staging, bd, bv);
         enc.copy_buffer_to_buffer(&f.normals, 0, &f.staging, bd + bv, bn);
         enc.copy_buffer_to_buffer(&f.counts, 0, &f.staging, bd + bv + bn, 16);
-        q.submit(Some(enc.finish()));
+        let index = q.submit(Some(enc.finish()));
         let slice = f.staging.slice(..);
         let (tx, rx) = std::sync::mpsc::channel();
         slice.map_async(wgpu::MapMode::Read, move |r| {
             let _ = tx.send(r);
         });
         let gpu_err = |e: String| GpuError::Operation(e).to_string();
-        ctx.wait().map_err(|e| e.to_string())?;
+        // This submission only: pipelined, the depth node's next pair may be on the GPU too.
+        ctx.device
+            .poll(wgpu::PollType::Wait {
+                submission_index: Some(index),
+                timeout: None,
+            })
+            .map_err(|e| gpu_err(e.to_string()))?;
         rx.recv()
             .map_err(|e| gpu_err(e.to_string()))?
             .map_err(|e| gpu_err(e.to_string()))?;
