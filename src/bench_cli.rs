@@ -61,6 +61,24 @@ pub(crate) enum BenchCommand {
         #[arg(long)]
         json: Option<PathBuf>,
     },
+    /// `depth.postprocess` on the GPU (`device = "gpu"`) against its CPU path on the same
+    /// synthetic depth map and image, in turns: wall time and the process's CPU time per map
+    /// (the CPU path's threads as RAYON_NUM_THREADS says), the GPU's stages, and how the outputs
+    /// compare.
+    PostGpu {
+        /// Map width.
+        #[arg(long, default_value_t = 640)]
+        width: usize,
+        /// Map height.
+        #[arg(long, default_value_t = 480)]
+        height: usize,
+        /// Timed runs of each path (medians are reported).
+        #[arg(long, default_value_t = 50, value_parser = count_usize)]
+        repeat: usize,
+        /// Write the figures as JSON here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// SGM on the CPU: the median time per pair and of each stage (census, forward pass,
     /// backward pass with the selection, left-right check with median and speckles); threads as
     /// RAYON_NUM_THREADS says.
@@ -350,6 +368,43 @@ pub(crate) fn run(which: BenchCommand) -> anyhow::Result<()> {
             out!(
                 "stages: census {:.2}, forward {:.2}, backward + select {:.2}, finish {:.2}, total {:.2} ms",
                 s.census_ms, s.forward_ms, s.backward_select_ms, s.finish_ms, s.total_ms
+            );
+            if let Some(path) = out {
+                write_json(&path, &r)?;
+            }
+            Ok(())
+        }
+        BenchCommand::PostGpu {
+            width,
+            height,
+            repeat,
+            out,
+        } => {
+            let r = misslam::bench::post_gpu(width, height, repeat).map_err(anyhow::Error::msg)?;
+            out!(
+                "depth.postprocess {}x{} on {} (medians of {} runs each, in turns)",
+                r.width,
+                r.height,
+                r.adapter,
+                r.runs
+            );
+            out!(
+                "CPU ({} threads): {:.3} ms a map, {:.2} ms of CPU; GPU: {:.3} ms a map (upload {:.3}, kernels and copy back {:.3}, readback {:.3}), {:.2} ms of CPU",
+                r.cpu_threads,
+                r.cpu_ms,
+                r.cpu_cpu_ms,
+                r.gpu_ms,
+                r.gpu_upload_ms,
+                r.gpu_kernels_ms,
+                r.gpu_readback_ms,
+                r.gpu_cpu_ms
+            );
+            out!(
+                "parity: masks and counts {}; largest differences: depth {:.2e} mm, points {:.2e} mm, normals {:.2e}",
+                if r.masks_equal { "equal" } else { "DIFFER" },
+                r.max_depth_diff_mm,
+                r.max_point_diff_mm,
+                r.max_normal_diff
             );
             if let Some(path) = out {
                 write_json(&path, &r)?;

@@ -682,53 +682,6 @@ fn depth_elas_on_the_gpu_scores_as_on_the_cpu() {
     );
 }
 
-/// A depth map with what `depth.postprocess` meets: a smooth surface with a fold (an 8 mm step),
-/// noise, invalid and out-of-range values; and a left image with a black border band, texture,
-/// near-white highlights and a bright red patch (not a highlight), of `c` channels.
-fn post_scene(w: usize, h: usize, c: usize, seed: u64) -> (Vec<f32>, Vec<u8>) {
-    let noise = bytes(w * h, seed);
-    let depth = (0..w * h)
-        .map(|i| {
-            let (x, y) = ((i % w) as f32, (i / w) as f32);
-            let fold = if x > 0.55 * w as f32 && y > 0.3 * h as f32 {
-                8.0
-            } else {
-                0.0
-            };
-            let z = 60.0 + 10.0 * (x / 13.0).sin() + 5.0 * (y / 7.0).cos() + fold;
-            match noise[i] {
-                0..=2 => f32::NAN,
-                3 => 5.0,
-                4 => 400.0,
-                5 => -3.0,
-                6 => f32::INFINITY,
-                n => z + (f32::from(n) - 128.0) * 0.004,
-            }
-        })
-        .collect();
-    let tex = bytes(w * h * c, seed + 1);
-    let mut img = vec![0u8; w * h * c];
-    for y in 0..h {
-        for x in 0..w {
-            let px = &mut img[(y * w + x) * c..(y * w + x + 1) * c];
-            let t = &tex[(y * w + x) * c..(y * w + x + 1) * c];
-            if x < 3 {
-                px.fill(t[0] % 12); // the border band, some of it above the black level
-            } else if (x + 3 * y) % 97 == 5 {
-                px.fill(250 - t[0] % 8); // a highlight
-            } else if (x * 7 + y) % 89 == 1 {
-                px[0] = 252; // bright but coloured: not a highlight
-                px[1..].fill(90);
-            } else {
-                for (p, &v) in px.iter_mut().zip(t) {
-                    *p = 40 + v % 150;
-                }
-            }
-        }
-    }
-    (depth, img)
-}
-
 /// `depth.postprocess` on the GPU against its CPU path: every mask, the filter and the maps, for
 /// 1, 3 and 4 channels, with and without the pair's mask, smoothing and dilation, sizes that are
 /// not multiples of the 8 x 8 workgroups. The masks and counts are exact; the values within
@@ -793,7 +746,7 @@ fn postprocess_kernels_match_the_cpu_path() {
             baseline_mm: 5.0,
         };
         for c in [1usize, 3, 4] {
-            let (depth, img) = post_scene(w, h, c, (w * 131 + h * 7 + c) as u64);
+            let (depth, img) = misslam::bench::post_scene(w, h, c, (w * 131 + h * 7 + c) as u64);
             // Built field by field: `Image::new` takes 1 or 3 channels, a plugin may send 4.
             let image = |data: Vec<u8>| Image {
                 width: w as u32,
@@ -962,4 +915,30 @@ fn depth_postprocess_on_the_gpu_runs_the_main_graph_as_on_the_cpu() {
         c.is_finite() && (c - g).abs() <= 1e-3,
         "recon.mean_mm: CPU {c}, GPU {g}"
     );
+}
+
+#[test]
+fn bench_post_gpu_reports_parity_stages_and_cpu_time() {
+    if gpu().is_none() {
+        return;
+    }
+    let r = misslam::bench::post_gpu(67, 45, 2).unwrap();
+    assert_eq!((r.width, r.height, r.runs), (67, 45, 2));
+    assert!(r.masks_equal, "{r:?}");
+    assert!(
+        r.max_depth_diff_mm <= 1e-3 && r.max_point_diff_mm <= 1e-3 && r.max_normal_diff <= 1e-2,
+        "{r:?}"
+    );
+    assert!(
+        r.cpu_ms > 0.0 && r.gpu_ms > 0.0 && r.gpu_kernels_ms > 0.0 && r.gpu_readback_ms >= 0.0,
+        "{r:?}"
+    );
+    // Both paths use some CPU (where the platform says: NaN elsewhere).
+    assert!(
+        r.cpu_cpu_ms.is_nan() || (r.cpu_cpu_ms > 0.0 && r.gpu_cpu_ms > 0.0),
+        "{r:?}"
+    );
+    assert!(misslam::bench::post_gpu(2, 45, 1)
+        .unwrap_err()
+        .contains("--width"));
 }

@@ -13,7 +13,7 @@ use std::time::Instant;
 pub use ed::{ed_scaling, EdScalingParams, EdScalingRow};
 pub use features::{features, surf, FeaturesBench};
 pub use phantom::{phantom, PhantomRow};
-pub use post::{bilateral, BilateralBench};
+pub use post::{bilateral, post_gpu, post_scene, BilateralBench, PostGpuBench};
 pub use runtime::{runtime_overhead, OverheadRow};
 pub use stereo::{
     disparity_parity, elas, random_dot_pair, sgm_cpu, sgm_gpu, ElasBench, SgmCpuBench, SgmGpuBench,
