@@ -942,3 +942,44 @@ fn bench_post_gpu_reports_parity_stages_and_cpu_time() {
         .unwrap_err()
         .contains("--width"));
 }
+
+/// A map too large for the adapter's buffers is refused with a message that names the size and
+/// the way out (where the adapter's limits make such a map small enough to allocate here).
+#[test]
+fn postprocess_on_the_gpu_refuses_a_map_beyond_the_buffer_limits() {
+    use misslam::framework::StereoCalib;
+    use misslam_depth_postprocess::{gpu::PostGpu, Params};
+    let Some(ctx) = gpu() else { return };
+    let binding = ctx.device.limits().max_storage_buffer_binding_size;
+    if binding > 256 << 20 {
+        println!("skipped: this adapter binds {binding} bytes, a map past it is too large to allocate here");
+        return;
+    }
+    let w = 4096usize;
+    let h = (binding as usize / 12 + 1).div_ceil(w);
+    let calib = StereoCalib {
+        width: w as u32,
+        height: h as u32,
+        fx: 500.0,
+        fy: 500.0,
+        cx: w as f64 / 2.0,
+        cy: h as f64 / 2.0,
+        cx_right: w as f64 / 2.0,
+        baseline_mm: 5.0,
+    };
+    let err = PostGpu::new(&ctx)
+        .clean_into(
+            &ctx,
+            vec![60.0; w * h],
+            &calib,
+            None,
+            &Params::default(),
+            Default::default(),
+        )
+        .map(|_| ())
+        .expect_err("refused");
+    assert!(
+        err.contains(&format!("{w}x{h}")) && err.contains("device = \"cpu\""),
+        "{err}"
+    );
+}

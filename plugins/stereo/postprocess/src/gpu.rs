@@ -205,10 +205,15 @@ impl PostGpu {
             ));
         }
         let left = checked_left(pair, w, h)?;
-        let limit = ctx.device.limits().max_storage_buffer_binding_size;
-        if 12 * (w * h) as u64 > limit {
+        let limits = ctx.device.limits();
+        let (binding, buffer) = (
+            limits.max_storage_buffer_binding_size,
+            limits.max_buffer_size,
+        );
+        // The points' and normals' maps are the largest bindings; the readback holds all maps.
+        if 12 * (w * h) as u64 > binding || 28 * (w * h) as u64 + 16 > buffer {
             return Err(format!(
-                "a {w}x{h} map exceeds the GPU's storage buffer limit of {limit} bytes: use device = \"cpu\""
+                "a {w}x{h} map exceeds the GPU's buffer limits ({binding} bytes a binding, {buffer} a buffer): use device = \"cpu\""
             ));
         }
         let t0 = std::time::Instant::now();
