@@ -147,6 +147,52 @@ pub fn bilateral(
     sigma_px: f32,
     sigma_mm: f32,
 ) -> Vec<f32> {
+    bilateral_with(depth, w, h, radius, sigma_px, sigma_mm, Simd::best())
+}
+
+/// The vector instructions the bilateral filter's interior runs on (each gives the same bits).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Simd {
+    /// One pixel at a time.
+    Scalar,
+    /// 8 pixels a vector.
+    Avx2,
+    /// 16 pixels a vector (and AVX2's 8 for what is left).
+    Avx512,
+}
+
+impl Simd {
+    /// The widest this CPU runs.
+    pub(crate) fn best() -> Self {
+        *Self::available().last().unwrap_or(&Simd::Scalar)
+    }
+
+    /// Those this CPU runs, narrowest first.
+    pub(crate) fn available() -> Vec<Self> {
+        let mut v = vec![Simd::Scalar];
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::arch::is_x86_feature_detected!("avx2") {
+                v.push(Simd::Avx2);
+                if std::arch::is_x86_feature_detected!("avx512f") {
+                    v.push(Simd::Avx512);
+                }
+            }
+        }
+        v
+    }
+}
+
+/// [`bilateral`] on the given vector instructions (the tests run each this CPU has).
+pub(crate) fn bilateral_with(
+    depth: &[f32],
+    w: usize,
+    h: usize,
+    radius: usize,
+    sigma_px: f32,
+    sigma_mm: f32,
+    simd: Simd,
+) -> Vec<f32> {
     let BilateralTables {
         spatial,
         range,
@@ -163,6 +209,7 @@ pub fn bilateral(
         spatial: &spatial,
         range: &range,
         lut_scale,
+        simd,
     };
     let mut out = vec![f32::NAN; w * h];
     out.par_chunks_mut(w.max(1)).enumerate().for_each_init(
@@ -238,18 +285,28 @@ struct Taps<'a> {
     spatial: &'a [f32],
     range: &'a [f32; RANGE_LUT + 1],
     lut_scale: f32,
+    simd: Simd,
 }
 
 /// Weighted sums of row `y`, each pixel's over its window's taps in window order (rows, then
 /// columns; taps outside the image skipped), so every pixel gets the per-tap definition's bits.
-/// The interior runs 32 and then 8 pixels at a time with the sums in registers (AVX2); the
-/// pixels within `radius` of the row's ends, and all of them without AVX2, one at a time.
+/// The interior runs 32 and then 16 pixels at a time with AVX-512, then 32 and 8 with AVX2, the
+/// sums in registers; the pixels within `radius` of the row's ends, and all of them without
+/// AVX2, one at a time.
 fn bilateral_row(t: &Taps, y: usize, num: &mut [f32], den: &mut [f32]) {
     let (w, r) = (t.w, t.radius);
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") && w >= 2 * r + 8 {
-        // SAFETY: the CPU supports AVX2 (checked just above).
-        let end = unsafe { bilateral_interior_avx2(t, y, num, den) };
+    if t.simd != Simd::Scalar && w >= 2 * r + 8 {
+        // SAFETY: `Simd::available` found the instructions on this CPU (AVX-512 only with
+        // AVX2); the blocks stay within the row (their loops' bounds).
+        let end = unsafe {
+            let x = if t.simd == Simd::Avx512 {
+                bilateral_interior_avx512(t, y, num, den)
+            } else {
+                r
+            };
+            bilateral_interior_avx2(t, y, x, num, den)
+        };
         for x in (0..r).chain(end..w) {
             (num[x], den[x]) = pixel_sums(t, x, y);
         }
@@ -293,9 +350,15 @@ fn pixel_sums(t: &Taps, x: usize, y: usize) -> (f32, f32) {
 /// same operations in the same order as [`pixel_sums`], so the same bits.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-fn bilateral_interior_avx2(t: &Taps, y: usize, num: &mut [f32], den: &mut [f32]) -> usize {
+fn bilateral_interior_avx2(
+    t: &Taps,
+    y: usize,
+    from: usize,
+    num: &mut [f32],
+    den: &mut [f32],
+) -> usize {
     let (w, r) = (t.w, t.radius);
-    let mut x = r;
+    let mut x = from;
     while x + 32 + r <= w {
         bilateral_block_avx2::<4>(t, y, x, num, den);
         x += 32;
@@ -354,6 +417,78 @@ fn bilateral_block_avx2<const K: usize>(
         for j in 0..K {
             _mm256_storeu_ps(num.as_mut_ptr().add(x0 + 8 * j), n[j]);
             _mm256_storeu_ps(den.as_mut_ptr().add(x0 + 8 * j), d[j]);
+        }
+    }
+}
+
+/// [`pixel_sums`] for the pixels `radius..end` of row `y`, blocks of 16 pixels a vector, two at
+/// once while they fit; returns `end`, the first pixel left for the AVX2 blocks. Each lane takes
+/// the operations of [`pixel_sums`] in its order (a multiply then an add, never fused), so the
+/// same bits.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2")]
+fn bilateral_interior_avx512(t: &Taps, y: usize, num: &mut [f32], den: &mut [f32]) -> usize {
+    let (w, r) = (t.w, t.radius);
+    let mut x = r;
+    while x + 32 + r <= w {
+        bilateral_block_avx512::<2>(t, y, x, num, den);
+        x += 32;
+    }
+    while x + 16 + r <= w {
+        bilateral_block_avx512::<1>(t, y, x, num, den);
+        x += 16;
+    }
+    x
+}
+
+/// The sums of the `16 K` pixels from `x0` of row `y` (all their taps within the row).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+fn bilateral_block_avx512<const K: usize>(
+    t: &Taps,
+    y: usize,
+    x0: usize,
+    num: &mut [f32],
+    den: &mut [f32],
+) {
+    use std::arch::x86_64::*;
+    let (w, r) = (t.w, t.radius);
+    let side = 2 * r + 1;
+    assert!(
+        x0 >= r && x0 + 16 * K + r <= w && num.len() >= x0 + 16 * K && den.len() >= x0 + 16 * K
+    );
+    let scale = _mm512_set1_ps(t.lut_scale);
+    let top = _mm512_set1_ps(RANGE_LUT as f32);
+    let row0 = &t.depth[y * w..(y + 1) * w];
+    // SAFETY (every load, gather and store below): the lanes x0 - r .. x0 + 16 K + r lie within
+    // the row (asserted above); the gather indices are in [0, RANGE_LUT] (|v - z| * scale is
+    // finite and non-negative, clamped to RANGE_LUT before truncation).
+    unsafe {
+        let z: [__m512; K] =
+            std::array::from_fn(|j| _mm512_loadu_ps(row0.as_ptr().add(x0 + 16 * j)));
+        let mut n = [_mm512_setzero_ps(); K];
+        let mut d = [_mm512_setzero_ps(); K];
+        for yy in y.saturating_sub(r)..=(y + r).min(t.h - 1) {
+            let row = t.depth[yy * w..(yy + 1) * w].as_ptr().add(x0 - r);
+            let sw = &t.spatial[(yy + r - y) * side..(yy + r - y + 1) * side];
+            for (dxi, &s) in sw.iter().enumerate() {
+                let swv = _mm512_set1_ps(s);
+                for j in 0..K {
+                    let v = _mm512_loadu_ps(row.add(dxi + 16 * j));
+                    let k = _mm512_min_ps(
+                        _mm512_mul_ps(_mm512_abs_ps(_mm512_sub_ps(v, z[j])), scale),
+                        top,
+                    );
+                    let rw = _mm512_i32gather_ps::<4>(_mm512_cvttps_epi32(k), t.range.as_ptr());
+                    let wgt = _mm512_mul_ps(swv, rw);
+                    n[j] = _mm512_add_ps(n[j], _mm512_mul_ps(wgt, v));
+                    d[j] = _mm512_add_ps(d[j], wgt);
+                }
+            }
+        }
+        for j in 0..K {
+            _mm512_storeu_ps(num.as_mut_ptr().add(x0 + 16 * j), n[j]);
+            _mm512_storeu_ps(den.as_mut_ptr().add(x0 + 16 * j), d[j]);
         }
     }
 }
@@ -546,13 +681,18 @@ mod tests {
     fn bilateral_equals_the_per_tap_definition() {
         // The clipped-window loops must take the same taps in the same order as testing every
         // tap against the image: equal bits, on a map with holes, at the borders and the corners.
-        // 23 px wide takes the vector blocks of 8 pixels, 77 px those of 32 too.
-        for (w, h) in [(23usize, 17usize), (77, 9)] {
-            bilateral_equals_the_per_tap_definition_at(w, h);
+        // Every vector width this CPU has: AVX2 takes blocks of 8 pixels at 23 px, of 32 too at
+        // 77; AVX-512 blocks of 16 at 23 and 31 (then AVX2's 8 at 31), of 32 at 77 and 102.
+        let levels = Simd::available();
+        println!("vector widths on this CPU: {levels:?}");
+        for simd in levels {
+            for (w, h) in [(23usize, 17usize), (31, 6), (77, 9), (102, 5)] {
+                bilateral_equals_the_per_tap_definition_at(w, h, simd);
+            }
         }
     }
 
-    fn bilateral_equals_the_per_tap_definition_at(w: usize, h: usize) {
+    fn bilateral_equals_the_per_tap_definition_at(w: usize, h: usize, simd: Simd) {
         let (radius, sigma_px, sigma_mm) = (3usize, 2.0f32, 1.5f32);
         let mut s = 7u32;
         let depth: Vec<f32> = (0..w * h)
@@ -565,7 +705,7 @@ mod tests {
                 }
             })
             .collect();
-        let got = bilateral(&depth, w, h, radius, sigma_px, sigma_mm);
+        let got = bilateral_with(&depth, w, h, radius, sigma_px, sigma_mm, simd);
         let r = radius as i64;
         let lut_scale = 1024.0 / (4.0 * sigma_mm);
         let range: Vec<f32> = (0..1024)
@@ -603,7 +743,7 @@ mod tests {
             assert_eq!(
                 got[i].to_bits(),
                 (num / den).to_bits(),
-                "pixel {i} of {w}x{h}"
+                "pixel {i} of {w}x{h}, {simd:?}"
             );
         }
     }
