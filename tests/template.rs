@@ -5,7 +5,6 @@
 
 mod common;
 
-use misslam::framework::GpuProvider;
 use misslam_deformation_ed::observe::scan_from_depth;
 use misslam_deformation_ed::{DistanceField, Intrinsics};
 use misslam_fusion_template::gpu::DffKernel;
@@ -67,17 +66,7 @@ fn exact_report(sets: &[&str], name: &str) -> misslam::framework::RunReport {
 
 #[test]
 fn the_gpu_distance_field_matches_the_cpu_reference() {
-    let ctx = match GpuProvider::new().get() {
-        Ok(c) => c,
-        Err(e) => {
-            assert!(
-                std::env::var_os("MISSLAM_REQUIRE_GPU").is_none(),
-                "MISSLAM_REQUIRE_GPU is set but: {e}"
-            );
-            println!("skipped: {e}");
-            return;
-        }
-    };
+    let Some(ctx) = common::gpu() else { return };
     let mut ph = Phantom::new(
         PhantomParams {
             width: 320,
@@ -183,12 +172,7 @@ fn the_node_builds_its_field_and_normals_on_the_gpu_as_on_the_cpu() {
     // The template on exact depth with its field (values and the normals its rows take, the
     // default `field_normal`) from the WGSL kernel: the run of the CPU field, the figures within
     // what the kernel's rare rounding differences allow (bit-exact on lavapipe).
-    if let Err(e) = GpuProvider::new().get() {
-        assert!(
-            std::env::var_os("MISSLAM_REQUIRE_GPU").is_none(),
-            "MISSLAM_REQUIRE_GPU is set but: {e}"
-        );
-        println!("skipped: {e}");
+    if common::gpu().is_none() {
         return;
     }
     let sets = ["graph.frames.count=4", "fusion.field.window_px=2"];

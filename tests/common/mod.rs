@@ -163,3 +163,19 @@ pub fn finite_ply_vertices(path: &Path) -> usize {
     }
     nv
 }
+
+/// The shared GPU context, or `None` with the reason printed when no adapter exists; with
+/// `MISSLAM_REQUIRE_GPU` set (CI) a missing adapter fails the test instead of hiding.
+pub fn gpu() -> Option<std::sync::Arc<misslam::framework::GpuContext>> {
+    match misslam::framework::gpu::GpuProvider::new().get() {
+        Ok(ctx) => Some(ctx),
+        Err(e) => {
+            assert!(
+                std::env::var_os("MISSLAM_REQUIRE_GPU").is_none(),
+                "MISSLAM_REQUIRE_GPU is set but: {e}"
+            );
+            println!("skipped: {e}");
+            None
+        }
+    }
+}
