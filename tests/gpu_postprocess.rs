@@ -24,6 +24,16 @@ fn postprocess_kernels_match_the_cpu_path() {
     let variants: Vec<(&str, Params)> = vec![
         ("defaults", base.clone()),
         (
+            // The tables' length unchanged, their values not: the kernels must get the new ones.
+            "sigma 0.8 px and 0.6 mm, saturation 0.05",
+            Params {
+                smooth_sigma_px: 0.8,
+                smooth_sigma_mm: 0.6,
+                specular_max_saturation: 0.05,
+                ..base.clone()
+            },
+        ),
+        (
             "no smoothing",
             Params {
                 smoothing: Smoothing::None,

@@ -84,8 +84,8 @@ pub fn bilateral(
 /// A depth map and a left image like those `depth.postprocess` meets (the GPU parity test and
 /// `misslam bench post-gpu` use them): a smooth surface at 45 to 75 mm with a fold (an 8 mm
 /// step), noise of about 0.25 mm, invalid and out-of-range values on about 2.7 % of the pixels;
-/// an image of `c` channels with a black border band, texture, near-white highlights and bright
-/// red patches (not highlights). Seeded, so a test's inputs never change.
+/// an image of `c` channels with a black border band, texture, near-white highlights (some
+/// slightly tinted) and bright red patches (not highlights). Seeded, so a test's inputs never change.
 pub fn post_scene(w: usize, h: usize, c: usize, seed: u64) -> (Vec<f32>, Vec<u8>) {
     let mut s = seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
     let mut bytes = |n: usize| -> Vec<u8> {
@@ -128,6 +128,10 @@ pub fn post_scene(w: usize, h: usize, c: usize, seed: u64) -> (Vec<f32>, Vec<u8>
                 px.fill(t[0] % 12); // the border band, some of it above the black level
             } else if (x + 3 * y) % 97 == 5 {
                 px.fill(250 - t[0] % 8); // a highlight
+            } else if (x + 5 * y) % 101 == 7 {
+                // A tinted highlight: saturation 0.056, a highlight at the default 0.2 only.
+                px.fill(236);
+                px[0] = 250;
             } else if (x * 7 + y) % 89 == 1 {
                 px[0] = 252; // bright but coloured: not a highlight
                 px[1..].fill(90);

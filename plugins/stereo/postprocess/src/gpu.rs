@@ -74,12 +74,68 @@ struct Frame {
     groups: [wgpu::BindGroup; 6],
     /// The staging buffer's layout: depth, vertices, normals, counts (bytes).
     bytes: (u64, u64, u64),
+    /// What the tables buffer holds (None: nothing yet).
+    tables_key: Option<TablesKey>,
+}
+
+/// What the kernels' tables depend on: the filter's radius and sigmas, the specular saturation
+/// and the calibration (as bits).
+type TablesKey = [u64; 9];
+
+/// The kernels' tables: the range weights (RANGE_LUT + 1), then at `offsets` the spatial
+/// weights, the widest spreads per brightest value, (u - cx) / fx per column and (v - cy) / fy
+/// per row.
+struct Tables {
+    key: TablesKey,
+    data: Vec<f32>,
+    offsets: [u32; 4],
+    lut_scale: f32,
+}
+
+impl Tables {
+    fn key(p: &Params, calib: &StereoCalib, radius: usize) -> TablesKey {
+        [
+            radius as u64,
+            u64::from(p.smooth_sigma_px.to_bits()),
+            u64::from(p.smooth_sigma_mm.to_bits()),
+            u64::from(p.specular_max_saturation.to_bits()),
+            u64::from(calib.width) << 32 | u64::from(calib.height),
+            calib.fx.to_bits(),
+            calib.fy.to_bits(),
+            calib.cx.to_bits(),
+            calib.cy.to_bits(),
+        ]
+    }
+
+    fn new(p: &Params, calib: &StereoCalib, radius: usize, key: TablesKey) -> Self {
+        let (w, h) = (calib.width as usize, calib.height as usize);
+        let bt = BilateralTables::new(radius, p.smooth_sigma_px, p.smooth_sigma_mm);
+        let widest = maps::widest_spreads(p.specular_max_saturation);
+        let mut data: Vec<f32> = Vec::with_capacity(RANGE_LUT + 1 + bt.spatial.len() + 256 + w + h);
+        data.extend_from_slice(&bt.range);
+        let spatial_at = data.len() as u32;
+        data.extend_from_slice(&bt.spatial);
+        let widest_at = data.len() as u32;
+        data.extend(widest.iter().map(|&v| f32::from(v)));
+        let xs_at = data.len() as u32;
+        data.extend((0..w).map(|u| ((u as f64 - calib.cx) / calib.fx) as f32));
+        let ys_at = data.len() as u32;
+        data.extend((0..h).map(|v| ((v as f64 - calib.cy) / calib.fy) as f32));
+        Tables {
+            key,
+            data,
+            offsets: [spatial_at, widest_at, xs_at, ys_at],
+            lut_scale: bt.lut_scale,
+        }
+    }
 }
 
 /// The compiled kernels and the buffers of the last frame's size.
 pub struct PostGpu {
     pipelines: Vec<wgpu::ComputePipeline>,
     frame: Option<Frame>,
+    /// The tables of the last call's parameters and calibration.
+    tables: Option<Tables>,
 }
 
 /// Bytes of `n` u8 values rounded up to whole 4-byte words (at least one word).
@@ -96,6 +152,7 @@ impl PostGpu {
                 .map(|e| ctx.compute_pipeline(e, POSTPROCESS_WGSL, e))
                 .collect(),
             frame: None,
+            tables: None,
         }
     }
 
@@ -106,7 +163,7 @@ impl PostGpu {
         pipelines: &[wgpu::ComputePipeline],
         ctx: &GpuContext,
         key: (usize, usize, usize, usize),
-    ) -> &'a Frame {
+    ) -> &'a mut Frame {
         if let Some(f) = slot.take().filter(|f| f.key == key) {
             return slot.insert(f);
         }
@@ -183,6 +240,7 @@ impl PostGpu {
             staging,
             groups,
             bytes,
+            tables_key: None,
         })
     }
 
@@ -217,25 +275,17 @@ impl PostGpu {
             ));
         }
         let t0 = std::time::Instant::now();
-        // The tables: range weights, spatial weights, widest spreads, (u - cx) / fx, (v - cy) / fy.
         let radius = if p.smoothing == Smoothing::Bilateral {
             p.smooth_radius
         } else {
             0
         };
-        let bt = BilateralTables::new(radius, p.smooth_sigma_px, p.smooth_sigma_mm);
-        let widest = maps::widest_spreads(p.specular_max_saturation);
-        let mut tables: Vec<f32> =
-            Vec::with_capacity(RANGE_LUT + 1 + bt.spatial.len() + 256 + w + h);
-        tables.extend_from_slice(&bt.range);
-        let spatial_at = tables.len() as u32;
-        tables.extend_from_slice(&bt.spatial);
-        let widest_at = tables.len() as u32;
-        tables.extend(widest.iter().map(|&v| f32::from(v)));
-        let xs_at = tables.len() as u32;
-        tables.extend((0..w).map(|u| ((u as f64 - calib.cx) / calib.fx) as f32));
-        let ys_at = tables.len() as u32;
-        tables.extend((0..h).map(|v| ((v as f64 - calib.cy) / calib.fy) as f32));
+        let key = Tables::key(p, calib, radius);
+        if self.tables.as_ref().is_none_or(|t| t.key != key) {
+            self.tables = Some(Tables::new(p, calib, radius, key));
+        }
+        let tables = self.tables.as_ref().expect("just set");
+        let [spatial_at, widest_at, xs_at, ys_at] = tables.offsets;
 
         let mut flags = 0;
         let (mut c, mut image_bytes, mut mask_bytes): (usize, &[u8], &[u8]) = (0, &[], &[]);
@@ -277,7 +327,7 @@ impl PostGpu {
             radius as u32,
             f32b(p.min_depth_mm),
             f32b(p.max_depth_mm),
-            f32b(bt.lut_scale),
+            f32b(tables.lut_scale),
             f32b(p.max_normal_step_mm),
             spatial_at,
             widest_at,
@@ -294,16 +344,19 @@ impl PostGpu {
                 "a {w}x{h} map needs more workgroups than the GPU dispatches: use device = \"cpu\""
             ));
         }
-        let ntables = tables.len();
         let f = Self::frame(
             &mut self.frame,
             &self.pipelines,
             ctx,
-            (w, h, c.max(1), ntables),
+            (w, h, c.max(1), tables.data.len()),
         );
         let q = &ctx.queue;
         q.write_buffer(&f.params, 0, bytemuck::cast_slice(&uniform));
-        q.write_buffer(&f.tables, 0, bytemuck::cast_slice(&tables));
+        // The tables change with the parameters and the calibration only.
+        if f.tables_key != Some(key) {
+            q.write_buffer(&f.tables, 0, bytemuck::cast_slice(&tables.data));
+            f.tables_key = Some(key);
+        }
         q.write_buffer(&f.depth, 0, bytemuck::cast_slice(&depth));
         write_bytes(q, &f.image, image_bytes);
         write_bytes(q, &f.mask, mask_bytes);
