@@ -16,7 +16,9 @@
 #       nice=.dev/new.gz@recon.nice=10,recon_world.nice=10,export.nice=10 \
 #       gpupost=.dev/new.gz@post.device=gpu
 # FRAMES (default 150) and EXTRA (more `--set` arguments for every variant) are read from the
-# environment.
+# environment; with BENCH=1 the last variant's binary first runs `misslam bench sgm-gpu` and
+# `misslam bench post-gpu` (the GPU stages alone against their CPU paths, with the adapter's
+# name), into $OUT/bench-*.txt and .json too.
 #
 # The lent machines have no Rust toolchain and no network. Prepare on this machine:
 #   cargo build && strip -o .dev/new "$CARGO_TARGET_DIR/debug/misslam" && gzip -9f .dev/new
@@ -57,6 +59,15 @@ for spec in "$@"; do
     names+=("$name")
 done
 
+if [ "${BENCH:-0}" = 1 ]; then
+    last="${names[${#names[@]} - 1]}"
+    for b in sgm-gpu post-gpu; do
+        echo "== $last: misslam bench $b" | tee "$out/bench-$b.txt"
+        "$work/$last.bin" bench "$b" --repeat 20 --out "$out/bench-$b.json" 2>&1 \
+            | grep -v ' INFO ' | tee -a "$out/bench-$b.txt"
+    done
+fi
+
 for ((r = 1; r <= rounds; r++)); do
     for name in "${names[@]}"; do
         args=()
@@ -88,14 +99,14 @@ EOF
     done
 done
 
-python3 - "$out" "${names[@]}" <<'EOF' | tee "$out/summary.txt"
+python3 - "$out" "$rounds" "${names[@]}" <<'EOF' | tee "$out/summary.txt"
 import json, statistics, sys
-out, names = sys.argv[1], sys.argv[2:]
-import glob
+out, rounds, names = sys.argv[1], int(sys.argv[2]), sys.argv[3:]
 keys = ["_interval", "fusion", "fusion.solve", "fusion.solve.factor", "post", "recon", "recon_world"]
 print("variant     rounds  fps (each round)               " + "  ".join(k for k in keys[1:]) + "  (medians over rounds, ms)")
 for name in names:
-    runs = [json.load(open(p)) for p in sorted(glob.glob(f"{out}/{name}-*.json"))]
+    # This call's rounds only (an $OUT used before may hold other runs' files).
+    runs = [json.load(open(f"{out}/{name}-{r}.json")) for r in range(1, rounds + 1)]
     fps = [1000 / r["timing_ms"]["_interval"]["median_ms"] for r in runs]
     cols = [statistics.median(r["timing_ms"][k]["median_ms"] for r in runs if k in r["timing_ms"]) for k in keys[1:]]
     print(f"{name:<10} {len(runs):>6}  {', '.join(f'{f:.1f}' for f in fps):<30} " + "  ".join(f"{c:.2f}" for c in cols))
