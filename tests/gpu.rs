@@ -12,16 +12,9 @@ use misslam::framework::{luma_bt601, Device, Image};
 
 use common::gpu;
 
-/// Deterministic pseudo-random bytes (xorshift), so the test is seeded.
-fn bytes(n: usize, mut s: u64) -> Vec<u8> {
-    (0..n)
-        .map(|_| {
-            s ^= s << 13;
-            s ^= s >> 7;
-            s ^= s << 17;
-            (s >> 24) as u8
-        })
-        .collect()
+/// Deterministic pseudo-random bytes, so the test is seeded.
+fn bytes(n: usize, seed: u64) -> Vec<u8> {
+    misslam::bench::SeededBytes::new(seed).bytes(n)
 }
 
 #[test]

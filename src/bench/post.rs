@@ -87,18 +87,8 @@ pub fn bilateral(
 /// an image of `c` channels with a black border band, texture, near-white highlights (some
 /// slightly tinted) and bright red patches (not highlights). Seeded, so a test's inputs never change.
 pub fn post_scene(w: usize, h: usize, c: usize, seed: u64) -> (Vec<f32>, Vec<u8>) {
-    let mut s = seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
-    let mut bytes = |n: usize| -> Vec<u8> {
-        (0..n)
-            .map(|_| {
-                s ^= s << 13;
-                s ^= s >> 7;
-                s ^= s << 17;
-                (s >> 24) as u8
-            })
-            .collect()
-    };
-    let noise = bytes(w * h);
+    let mut random = super::SeededBytes::new(seed);
+    let noise = random.bytes(w * h);
     let depth = (0..w * h)
         .map(|i| {
             let (x, y) = ((i % w) as f32, (i / w) as f32);
@@ -118,7 +108,7 @@ pub fn post_scene(w: usize, h: usize, c: usize, seed: u64) -> (Vec<f32>, Vec<u8>
             }
         })
         .collect();
-    let tex = bytes(w * h * c);
+    let tex = random.bytes(w * h * c);
     let mut img = vec![0u8; w * h * c];
     for y in 0..h {
         for x in 0..w {

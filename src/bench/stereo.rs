@@ -275,15 +275,9 @@ pub fn disparity_parity(a: &[f32], b: &[f32]) -> (usize, f32) {
 /// A rectified random-dot pair of `w` x `h` with a slanted background and a nearer block (so
 /// there are occlusions), disparities within 0..`nd`.
 pub fn random_dot_pair(w: usize, h: usize, nd: u32) -> (Vec<u8>, Vec<u8>) {
-    let mut s = 0x9e37_79b9_7f4a_7c15u64 ^ (w * 31 + h) as u64;
-    let mut next = move || {
-        s ^= s << 13;
-        s ^= s >> 7;
-        s ^= s << 17;
-        (s >> 24) as u8
-    };
-    let left: Vec<u8> = (0..w * h).map(|_| next()).collect();
-    let fill: Vec<u8> = (0..w * h).map(|_| next()).collect();
+    let mut random = super::SeededBytes::new((w * 31 + h) as u64);
+    let left = random.bytes(w * h);
+    let fill = random.bytes(w * h);
     let top = (nd.max(4) - 2) as usize;
     let disp = |x: usize, y: usize| {
         if (w / 3..w / 2).contains(&x) && (h / 4..h / 2).contains(&y) {
