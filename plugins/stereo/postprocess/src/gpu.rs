@@ -6,8 +6,8 @@
 //! Against the CPU path: the same invalid pixels and counts (the masks are comparisons of the
 //! same values); the filtered depth within a few units in the last place (a driver may fuse the
 //! filter's multiplies and adds); the points within an f32 rounding of the CPU's f64 product;
-//! the normals from those points (`tests/gpu.rs` states the tolerances and checks them on the
-//! adapter it finds, lavapipe in CI).
+//! the normals from those points (`tests/gpu_postprocess.rs` states the tolerances and checks
+//! them on the adapter it finds, lavapipe in CI).
 
 use crate::maps::{self, BilateralTables, RANGE_LUT};
 use crate::{border_mask, checked_left, Cleaned, Params, Smoothing};
@@ -402,17 +402,10 @@ impl PostGpu {
 
         let t2 = std::time::Instant::now();
         let (mut vertices, mut normals) = buffers;
-        let counts = {
-            let mapped = slice
-                .get_mapped_range()
-                .map_err(|e| gpu_err(e.to_string()))?;
+        // Unmapped whatever happens, so that the next frame can map the buffer again.
+        let counts = slice.get_mapped_range().map(|mapped| {
             let (bd, bv, bn) = (bd as usize, bv as usize, bn as usize);
-            let floats = |b: &[u8]| -> Vec<f32> {
-                b.chunks_exact(4)
-                    .map(|q| f32::from_le_bytes([q[0], q[1], q[2], q[3]]))
-                    .collect()
-            };
-            copy_floats(&mapped[..bd], &mut depth, &floats);
+            copy_floats(&mapped[..bd], &mut depth);
             copy_points(&mapped[bd..bd + bv], &mut vertices);
             copy_points(&mapped[bd + bv..bd + bv + bn], &mut normals);
             let c = &mapped[bd + bv + bn..bd + bv + bn + 16];
@@ -420,8 +413,9 @@ impl PostGpu {
                 u32::from_le_bytes([c[4 * k], c[4 * k + 1], c[4 * k + 2], c[4 * k + 3]]) as usize
             };
             [word(0), word(1), word(2)]
-        };
+        });
         f.staging.unmap();
+        let counts = counts.map_err(|e| gpu_err(e.to_string()))?;
         let readback_ms = t2.elapsed().as_secs_f64() * 1e3;
         Ok((
             Cleaned {
@@ -464,13 +458,15 @@ fn write_bytes(q: &wgpu::Queue, buf: &wgpu::Buffer, data: &[u8]) {
 }
 
 /// The mapped bytes as f32 into `out` (its allocation reused).
-fn copy_floats(bytes: &[u8], out: &mut Vec<f32>, slow: &dyn Fn(&[u8]) -> Vec<f32>) {
+fn copy_floats(bytes: &[u8], out: &mut Vec<f32>) {
+    out.clear();
     match bytemuck::try_cast_slice::<u8, f32>(bytes) {
-        Ok(v) => {
-            out.clear();
-            out.extend_from_slice(v);
-        }
-        Err(_) => *out = slow(bytes),
+        Ok(v) => out.extend_from_slice(v),
+        Err(_) => out.extend(
+            bytes
+                .chunks_exact(4)
+                .map(|q| f32::from_le_bytes([q[0], q[1], q[2], q[3]])),
+        ),
     }
 }
 
