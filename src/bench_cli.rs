@@ -5,6 +5,17 @@ use anyhow::Context;
 use clap::Subcommand;
 use std::path::PathBuf;
 
+/// A `--lanes` value: avx512, avx2 or portable.
+fn lane_level(s: &str) -> Result<misslam_depth_sgm::simd::Level, String> {
+    use misslam_depth_sgm::simd::Level;
+    match s {
+        "avx512" => Ok(Level::Avx512),
+        "avx2" => Ok(Level::Avx2),
+        "portable" => Ok(Level::Portable),
+        _ => Err(format!("`{s}` is not one of avx512, avx2, portable")),
+    }
+}
+
 #[derive(Subcommand)]
 pub(crate) enum BenchCommand {
     /// ELAS on a rectified pair: the time of each step (median of runs; threads as
@@ -104,6 +115,10 @@ pub(crate) enum BenchCommand {
         /// Timed runs (medians are reported).
         #[arg(long, default_value_t = 20, value_parser = count_usize)]
         repeat: usize,
+        /// The widest lane code the kernels may use: avx512, avx2 or portable (default: the
+        /// widest the CPU has; the output says which ran).
+        #[arg(long, value_parser = lane_level)]
+        lanes: Option<misslam_depth_sgm::simd::Level>,
         /// Write the figures as JSON here.
         #[arg(long)]
         out: Option<PathBuf>,
@@ -350,6 +365,7 @@ pub(crate) fn run(which: BenchCommand) -> anyhow::Result<()> {
             disparities,
             paths,
             repeat,
+            lanes,
             out,
         } => {
             let p = misslam_depth_sgm::sgm::SgmParams {
@@ -358,12 +374,12 @@ pub(crate) fn run(which: BenchCommand) -> anyhow::Result<()> {
                 ..Default::default()
             };
             let pair = left.as_deref().zip(right.as_deref());
-            let r = misslam::bench::sgm_cpu(pair, (width, height), &p, repeat)
+            let r = misslam::bench::sgm_cpu(pair, (width, height), &p, repeat, lanes)
                 .map_err(anyhow::Error::msg)?;
             let s = &r.stages_ms;
             out!(
-                "SGM {}x{}, {} disparities, {} paths, {} threads: {:.1} ms per pair (median of {}, fastest {:.1}); density {:.1} %",
-                r.width, r.height, r.disparities, r.paths, r.threads, r.ms, r.runs, r.min_ms, r.density_pct
+                "SGM {}x{}, {} disparities, {} paths, {} threads, {} lanes: {:.1} ms per pair (median of {}, fastest {:.1}); density {:.1} %",
+                r.width, r.height, r.disparities, r.paths, r.threads, r.lanes, r.ms, r.runs, r.min_ms, r.density_pct
             );
             out!(
                 "stages: census {:.2}, forward {:.2}, backward + select {:.2}, finish {:.2}, total {:.2} ms",

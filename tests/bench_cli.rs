@@ -79,6 +79,27 @@ fn sgm_bench_reports_its_stages_and_names_a_pair_that_does_not_fit() {
         parts + stage("finish_ms") <= stage("total_ms") * 1.001 + 1e-3,
         "{s}"
     );
+    // The lane code it ran at: the widest this CPU has unless capped.
+    let widest = format!("{:?}", misslam_depth_sgm::simd::supported());
+    assert_eq!(r["lanes"].as_str(), Some(widest.as_str()), "{r}");
+    let capped = misslam()
+        .args([
+            "bench", "sgm", "--width", "40", "--height", "20", "--repeat", "1",
+        ])
+        .args(["--lanes", "portable"])
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&capped.stdout);
+    assert!(text.contains("Portable lanes"), "{text}");
+    let wrong = misslam()
+        .args(["bench", "sgm", "--lanes", "sse9"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&wrong.stderr);
+    assert!(
+        !wrong.status.success() && err.contains("`sse9` is not one of avx512, avx2, portable"),
+        "{err}"
+    );
 
     let left = dir.join("l.png");
     let right = dir.join("r.png");

@@ -136,6 +136,9 @@ pub struct SgmCpuBench {
     pub stages_ms: misslam_depth_sgm::sgm::SgmTiming,
     /// Valid pixels of the output, % of all.
     pub density_pct: f64,
+    /// The lane code the kernels ran at ("Avx512", "Avx2" or "Portable"): the widest the CPU
+    /// has, at most the one asked for.
+    pub lanes: String,
 }
 
 /// Loads a gray pair (or makes the random-dot pair of `size`), checking that the sizes agree.
@@ -164,13 +167,29 @@ fn sgm_pair(
     }
 }
 
-/// The CPU SGM ([`misslam_depth_sgm::sgm::sgm`]) on a pair, with the threads rayon has: the
-/// median time per pair and of each stage over `repeat` runs after a warm-up run.
+/// The CPU SGM ([`misslam_depth_sgm::sgm::sgm`]) on a pair, with the threads rayon has and
+/// the lane code capped at `lanes` (`None`: the widest the CPU has): the median time per pair
+/// and of each stage over `repeat` runs after a warm-up run.
 pub fn sgm_cpu(
     pair: Option<(&Path, &Path)>,
     size: (usize, usize),
     p: &misslam_depth_sgm::sgm::SgmParams,
     repeat: usize,
+    lanes: Option<misslam_depth_sgm::simd::Level>,
+) -> Result<SgmCpuBench, String> {
+    use misslam_depth_sgm::simd::{cap, level, Level};
+    cap(lanes.unwrap_or(Level::Avx512));
+    let r = sgm_cpu_at(pair, size, p, repeat, format!("{:?}", level()));
+    cap(Level::Avx512);
+    r
+}
+
+fn sgm_cpu_at(
+    pair: Option<(&Path, &Path)>,
+    size: (usize, usize),
+    p: &misslam_depth_sgm::sgm::SgmParams,
+    repeat: usize,
+    lanes: String,
 ) -> Result<SgmCpuBench, String> {
     use misslam_depth_sgm::sgm::{sgm, Scratch, SgmTiming};
     let (w, h, left, right) = sgm_pair(pair, size, p.max_disparity)?;
@@ -205,6 +224,7 @@ pub fn sgm_cpu(
         min_ms: totals.iter().copied().fold(f64::INFINITY, f64::min),
         stages_ms,
         density_pct: 100.0 * valid as f64 / (w * h) as f64,
+        lanes,
     })
 }
 

@@ -169,6 +169,8 @@ pub(crate) struct Ctx<'a> {
     pub(crate) vdx: &'a [isize],
     /// The AVX2 pass runs the paths in u8 lanes (C_max + P2 <= 255; D' a multiple of 32).
     pub(crate) narrow: bool,
+    /// The AVX2 pass may use the AVX-512 kernels ([`crate::simd::Level::Avx512`]).
+    pub(crate) avx512: bool,
 }
 
 impl Ctx<'_> {

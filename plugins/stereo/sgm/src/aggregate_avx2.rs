@@ -656,14 +656,82 @@ fn popcnt64(v: __m256i, table: __m256i, low: __m256i) -> __m256i {
 
 /// [`crate::aggregate::cost_row`] 16 disparities at a time, as bytes: the Hamming distances of
 /// four candidates per register, packed to 16 lanes in disparity order. The lanes from D to D'
-/// are left as computed: the pass reads them as FAR.
+/// are left as computed: the pass reads them as FAR. With AVX-512 ([`Ctx::avx512`]) the
+/// distances of eight candidates per register come from one population-count instruction
+/// ([`crate::avx512::cost_chunks`]).
 ///
 /// # Safety
-/// The CPU has AVX2; `rev` holds `w + 2 * pad + LANES` entries and `cost` W x D' bytes.
+/// The CPU has AVX2 (and the AVX-512 extensions of [`crate::simd::Level::Avx512`] when
+/// `ctx.avx512`); `rev` holds `w + 2 * pad + LANES` entries and `cost` W x D' bytes.
 #[target_feature(enable = "avx2")]
 unsafe fn cost_row(ctx: &Ctx, y: usize, pad: usize, unknown: u8, rev: &mut [u64], cost: &mut [u8]) {
+    if ctx.avx512 {
+        // SAFETY: forwarded; the AVX-512 extensions are present when `ctx.avx512` is set.
+        unsafe { crate::avx512::cost_row(ctx, y, pad, unknown, rev, cost) }
+    } else {
+        // SAFETY: forwarded.
+        unsafe {
+            cost_row_with(ctx, y, pad, unknown, rev, cost, |src, c, dst, chunks| {
+                cost_chunks(src, c, dst, chunks)
+            })
+        }
+    }
+}
+
+/// The Hamming distances of census `c` to the `chunks` x 16 candidates at `src`, as bytes to
+/// `dst`, four candidates per register.
+///
+/// # Safety
+/// `chunks` x 16 entries at `src` and bytes at `dst` are valid.
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn cost_chunks(src: *const u64, c: u64, dst: *mut u8, chunks: usize) {
+    let table = _mm256_setr_epi8(
+        0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4, //
+        0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4,
+    );
+    let low = _mm256_set1_epi8(0x0f);
+    let order = _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7);
+    let cv = _mm256_set1_epi64x(c as i64);
+    // SAFETY: the caller guarantees the extents.
+    unsafe {
+        for q in 0..chunks {
+            let at = q * LANES;
+            let count = |i: usize| {
+                let r = _mm256_loadu_si256(src.add(at + 4 * i).cast());
+                popcnt64(_mm256_xor_si256(r, cv), table, low)
+            };
+            // Lanes (d0, d1 | d2, d3), (d4, d5 | d6, d7), ... as u64; two 32-bit packs give
+            // (d0 d1 d4 d5 d8 d9 d12 d13 | d2 d3 d6 d7 d10 d11 d14 d15), and a permutation of
+            // the 32-bit pairs restores the order; then 16 bytes from the low quadwords of
+            // both halves.
+            let p01 = _mm256_packus_epi32(count(0), count(1));
+            let p23 = _mm256_packus_epi32(count(2), count(3));
+            let v = _mm256_permutevar8x32_epi32(_mm256_packus_epi32(p01, p23), order);
+            let b = _mm256_permute4x64_epi64::<0b1000>(_mm256_packus_epi16(v, v));
+            _mm_storeu_si128(dst.add(at).cast(), _mm256_castsi256_si128(b));
+        }
+    }
+}
+
+/// A row of matching costs: the right census row reversed into `rev`, each pixel's `dp`
+/// candidates by `chunks(src, census, dst, dp / LANES)`, then its invalid disparities at
+/// `unknown`. Inlined into the callers, whose target features apply.
+///
+/// # Safety
+/// `chunks` reads `dp` entries at `src` and writes `dp` bytes at `dst`; `rev` holds
+/// `w + 2 * pad + LANES` entries and `cost` W x D' bytes.
+#[inline(always)]
+pub(crate) unsafe fn cost_row_with(
+    ctx: &Ctx,
+    y: usize,
+    pad: usize,
+    unknown: u8,
+    rev: &mut [u64],
+    cost: &mut [u8],
+    chunks: impl Fn(*const u64, u64, *mut u8, usize),
+) {
     let (w, nd, dp) = (ctx.w, ctx.nd, ctx.dp);
-    let chunks = dp / LANES;
     let dmin = ctx.p.min_disparity as isize;
     let cr = &ctx.cr[y * w..(y + 1) * w];
     assert!(rev.len() >= w + 2 * pad + LANES && cost.len() >= w * dp);
@@ -671,37 +739,16 @@ unsafe fn cost_row(ctx: &Ctx, y: usize, pad: usize, unknown: u8, rev: &mut [u64]
     for (xr, &c) in cr.iter().enumerate() {
         rev[pad + w - 1 - xr] = c;
     }
-    let table = _mm256_setr_epi8(
-        0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4, //
-        0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4,
-    );
-    let low = _mm256_set1_epi8(0x0f);
-    let order = _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7);
     for (x, &c) in ctx.cl[y * w..(y + 1) * w].iter().enumerate() {
         let t0 = (pad as isize + w as isize - 1 - x as isize + dmin) as usize;
-        let cv = _mm256_set1_epi64x(c as i64);
-        // SAFETY: t0 + dp <= w + 2 * pad + LANES (t0 <= pad + w - 1 + dmin, dp < nd + LANES,
+        // t0 + dp <= w + 2 * pad + LANES (t0 <= pad + w - 1 + dmin, dp < nd + LANES,
         // pad >= nd + |dmin| + 1) and the cell x * dp.. holds dp bytes (asserted above).
-        unsafe {
-            let src = rev.as_ptr().add(t0);
-            let dst = cost.as_mut_ptr().add(x * dp);
-            for q in 0..chunks {
-                let at = q * LANES;
-                let count = |i: usize| {
-                    let r = _mm256_loadu_si256(src.add(at + 4 * i).cast());
-                    popcnt64(_mm256_xor_si256(r, cv), table, low)
-                };
-                // Lanes (d0, d1 | d2, d3), (d4, d5 | d6, d7), ... as u64; two 32-bit packs
-                // give (d0 d1 d4 d5 d8 d9 d12 d13 | d2 d3 d6 d7 d10 d11 d14 d15), and a
-                // permutation of the 32-bit pairs restores the order; then 16 bytes from the
-                // low quadwords of both halves.
-                let p01 = _mm256_packus_epi32(count(0), count(1));
-                let p23 = _mm256_packus_epi32(count(2), count(3));
-                let v = _mm256_permutevar8x32_epi32(_mm256_packus_epi32(p01, p23), order);
-                let b = _mm256_permute4x64_epi64::<0b1000>(_mm256_packus_epi16(v, v));
-                _mm_storeu_si128(dst.add(at).cast(), _mm256_castsi256_si128(b));
-            }
-        }
+        chunks(
+            rev[t0..].as_ptr(),
+            c,
+            cost[x * dp..].as_mut_ptr(),
+            dp / LANES,
+        );
         let cell = &mut cost[x * dp..x * dp + nd];
         // Valid d: 0 <= x - d - dmin < w.
         let hi = x as isize - dmin; // largest valid d

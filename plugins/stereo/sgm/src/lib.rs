@@ -6,6 +6,8 @@
 mod aggregate;
 #[cfg(target_arch = "x86_64")]
 mod aggregate_avx2;
+#[cfg(target_arch = "x86_64")]
+mod avx512;
 mod census;
 mod filters;
 pub mod gpu;

@@ -23,7 +23,14 @@ fn min_i16(s: &[i16]) -> i16 {
 /// (FAR when there is none: the margin test then passes, as with u16::MAX in the reference);
 /// refined by the parabola through `bd` - 1, `bd`, `bd` + 1 when asked.
 #[inline(always)]
-fn settle(cell: &[i16], best: i16, bd: usize, second: i16, nd: usize, p: &SgmParams) -> f32 {
+pub(crate) fn settle(
+    cell: &[i16],
+    best: i16,
+    bd: usize,
+    second: i16,
+    nd: usize,
+    p: &SgmParams,
+) -> f32 {
     let second = if second == FAR {
         u64::from(u16::MAX)
     } else {
@@ -63,6 +70,12 @@ pub(crate) fn select_row(
     right: &mut [f32],
     rs: &mut RightScratch,
 ) {
+    #[cfg(target_arch = "x86_64")]
+    if ctx.avx512 && ctx.dp.is_multiple_of(32) {
+        // SAFETY: the CPU has the AVX-512 extensions when `ctx.avx512` is set.
+        unsafe { crate::avx512::select_row(ctx, y, tot, valid, disp, right, rs) };
+        return;
+    }
     #[cfg(target_arch = "x86_64")]
     if crate::simd::avx2() {
         // SAFETY: the CPU supports AVX2 (checked just above).
@@ -145,6 +158,33 @@ fn select_row_avx2(
         }
         *out = settle(&tot[cell..cell + dp], best, bd, hmin_avx2(sec), nd, p) + dmin;
     }
+    // SAFETY: the caller's AVX2.
+    unsafe { right_row_avx2(ctx, tot, right, rs) };
+}
+
+/// The right disparities of [`select_row_avx2`] (see there).
+///
+/// # Safety
+/// The CPU has AVX2; `tot` holds W x D' sums and `right` W entries.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+pub(crate) unsafe fn right_row_avx2(
+    ctx: &Ctx,
+    tot: &[i16],
+    right: &mut [f32],
+    rs: &mut RightScratch,
+) {
+    use std::arch::x86_64::*;
+    let (w, nd, dp, p) = (ctx.w, ctx.nd, ctx.dp, ctx.p);
+    let chunks = dp / LANES;
+    assert!(tot.len() >= w * dp && right.len() >= w);
+    let dmin = p.min_disparity as f32;
+    let lane_ids = _mm256_setr_epi16(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    let far = _mm256_set1_epi16(FAR);
+    let load = |at: usize| -> __m256i {
+        // SAFETY: at + LANES <= tot.len() (at < w * dp, a multiple of LANES; asserted above).
+        unsafe { _mm256_loadu_si256(tot.as_ptr().add(at).cast()) }
+    };
     // Right disparities. Chunk q of the window at rs.best/rs.arg[q * LANES..]: lane d of right
     // pixel xr = x - dmin - d. Guard lanes below d = 0 hold FAR.
     right[..w].fill(f32::NAN);

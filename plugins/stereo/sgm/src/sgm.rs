@@ -382,6 +382,7 @@ pub fn sgm(
         p,
         vdx: if p.paths == 8 { &[1, 0, -1] } else { &[0] },
         narrow,
+        avx512: crate::simd::avx512(),
     };
     let mut disp = vec![f32::NAN; w * h];
     right_disp.clear();

@@ -4,7 +4,32 @@
 use misslam_depth_sgm::sgm::{
     census, census_with, median3, path_step, remove_speckles, sgm, Scratch, SgmParams,
 };
+use misslam_depth_sgm::simd::Level;
 use misslam_depth_sgm::synthetic::right_view;
+
+/// The lane code levels, widest first.
+const LEVELS: [Level; 3] = [Level::Avx512, Level::Avx2, Level::Portable];
+
+/// Held by every test that caps the lane code (a process-wide setting), so that each checks
+/// the level it names while the tests run in parallel.
+static LEVEL_LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+fn level_lock() -> std::sync::MutexGuard<'static, ()> {
+    LEVEL_LOCK
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+/// Caps the kernels at `level` and returns the level they run at (lower where the CPU lacks
+/// it: said, so a run on such a CPU shows what it did not check).
+fn run_at(level: Level) -> Level {
+    misslam_depth_sgm::simd::cap(level);
+    let got = misslam_depth_sgm::simd::level();
+    if got < level {
+        eprintln!("this CPU lacks {level:?}: checked at {got:?} instead");
+    }
+    got
+}
 
 /// Deterministic random dots.
 fn dots(w: usize, h: usize, seed: u64) -> Vec<u8> {
@@ -32,6 +57,7 @@ fn census_bits_follow_the_window_order() {
 #[test]
 fn census_matches_the_reference_for_every_window_shape_on_both_code_paths() {
     use misslam_depth_sgm::reference::census_reference;
+    let _level = level_lock();
     // Widths around the 32- and 64-pixel blocks; windows from 8 to 64 comparisons (13x5 and
     // 5x13 fill all 64 bits), including extreme gray levels at the borders.
     // One pad buffer across every size and window, as a `Scratch` keeps it between frames.
@@ -270,11 +296,19 @@ fn the_fast_path_gives_exactly_the_reference_output() {
             paths: 4,
             ..SgmParams::default()
         },
-        // The largest P2 that still fits u8 lanes (62 + 193 = 255), with a strong margin.
+        // The largest P2 that still fits u8 lanes (62 + 193 = 255), with a strong margin;
+        // D' = 96, not a multiple of the 64 u8 lanes of an AVX-512 register.
         SgmParams {
             p2: 193,
             max_disparity: 70,
             uniqueness_pct: 30,
+            ..SgmParams::default()
+        },
+        // i16 lanes with D' = 48, not a multiple of the 32 i16 lanes of an AVX-512 register
+        // (the AVX2 selection then runs at the AVX-512 level).
+        SgmParams {
+            p2: 300,
+            max_disparity: 40,
             ..SgmParams::default()
         },
     ];
@@ -287,12 +321,13 @@ fn the_fast_path_gives_exactly_the_reference_output() {
             want.iter().filter(|v| v.is_finite()).count() > w * h / 3,
             "case {i} is dense enough to mean something"
         );
-        // The AVX2 kernels (where the CPU has them) and the portable ones.
-        for portable in [false, true] {
-            misslam_depth_sgm::simd::force_portable(portable);
+        // The AVX-512 and AVX2 kernels (where the CPU has them) and the portable ones.
+        let _level = level_lock();
+        for level in LEVELS {
+            let level = run_at(level);
             let mut c = Vec::new();
             census(&left, w, h, cw, ch, &mut c);
-            assert_eq!(c, want_census, "census, case {i}, portable {portable}");
+            assert_eq!(c, want_census, "census, case {i}, {level:?}");
             for threads in [1, 2] {
                 let got = on_threads(threads, || {
                     let mut s = Scratch::default();
@@ -303,11 +338,11 @@ fn the_fast_path_gives_exactly_the_reference_output() {
                 assert_eq!(
                     same(&got, &want),
                     0,
-                    "case {i}, {threads} threads, portable {portable}"
+                    "case {i}, {threads} threads, {level:?}"
                 );
             }
         }
-        misslam_depth_sgm::simd::force_portable(false);
+        misslam_depth_sgm::simd::cap(Level::Avx512);
     }
 }
 
@@ -326,11 +361,12 @@ fn an_empty_image_is_refused_and_a_tiny_one_matched_not_a_panic() {
         .unwrap_err();
         assert!(e.contains(&format!("{w}x{h}")), "{e}");
     }
-    // Narrower than the disparity range and the census window, on both code paths.
+    // Narrower than the disparity range and the census window, at every level.
+    let _level = level_lock();
     for (w, h) in [(1, 1), (3, 2), (16, 1), (1, 16), (5, 3)] {
         let img = dots(w, h, 3);
-        for portable in [false, true] {
-            misslam_depth_sgm::simd::force_portable(portable);
+        for level in LEVELS {
+            run_at(level);
             let d = sgm(
                 &img,
                 &img,
@@ -340,7 +376,7 @@ fn an_empty_image_is_refused_and_a_tiny_one_matched_not_a_panic() {
                 &SgmParams::default(),
                 &mut Scratch::default(),
             );
-            misslam_depth_sgm::simd::force_portable(false);
+            misslam_depth_sgm::simd::cap(Level::Avx512);
             assert_eq!(d.unwrap().len(), w * h, "{w}x{h}");
         }
     }
