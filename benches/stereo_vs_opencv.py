@@ -156,15 +156,18 @@ def main():
                         times.append(1e3 * (time.perf_counter() - t))
                     d[d < 0] = np.nan
                     rows.append(dict(method=name, size=label, threads=threads, ms=float(np.median(times)), **scores(d, g, mask)))
+                # The SGM kernels at the widest lane code this CPU has, then capped at AVX2
+                # (MISSLAM_SIMD; the same output, so the same scores).
                 misslam_runs = [
-                    ("misslam depth.sgm (8 paths, census 9x7)", "graphs/depth_sgm.toml", [f"depth.max_disparity={nd}"]),
-                    ("misslam depth.elas robotics", "graphs/depth_elas.toml", ["depth.preset=robotics", "depth.disp_max=255", "depth.subpixel=false"]),
-                    ("misslam depth.elas robotics + subpixel", "graphs/depth_elas.toml", ["depth.preset=robotics", "depth.disp_max=255", "depth.subpixel=true"]),
-                    ("misslam depth.elas middlebury", "graphs/depth_elas.toml", ["depth.preset=middlebury", "depth.disp_max=255", "depth.subpixel=false"]),
+                    ("misslam depth.sgm (8 paths, census 9x7)", "graphs/depth_sgm.toml", [f"depth.max_disparity={nd}"], {}),
+                    ("misslam depth.sgm, AVX2 lanes", "graphs/depth_sgm.toml", [f"depth.max_disparity={nd}"], {"MISSLAM_SIMD": "avx2"}),
+                    ("misslam depth.elas robotics", "graphs/depth_elas.toml", ["depth.preset=robotics", "depth.disp_max=255", "depth.subpixel=false"], {}),
+                    ("misslam depth.elas robotics + subpixel", "graphs/depth_elas.toml", ["depth.preset=robotics", "depth.disp_max=255", "depth.subpixel=true"], {}),
+                    ("misslam depth.elas middlebury", "graphs/depth_elas.toml", ["depth.preset=middlebury", "depth.disp_max=255", "depth.subpixel=false"], {}),
                 ]
                 if args.sgm_only:
-                    misslam_runs = misslam_runs[:1]
-                for name, graph, sets in misslam_runs:
+                    misslam_runs = misslam_runs[:2]
+                for name, graph, sets, env in misslam_runs:
                     out = f"{tmp}/out"
                     # graph.parallel=false: the depth node runs alone, as OpenCV's call does
                     # (not beside the source decoding and the sink encoding the next frame).
@@ -173,7 +176,7 @@ def main():
                            "--set", "graph.parallel=false"]
                     for kv in sets:
                         cmd += ["--set", kv]
-                    subprocess.run(cmd, check=True, env=dict(os.environ, RAYON_NUM_THREADS=str(threads)), stderr=subprocess.DEVNULL)
+                    subprocess.run(cmd, check=True, env=dict(os.environ, RAYON_NUM_THREADS=str(threads), **env), stderr=subprocess.DEVNULL)
                     m = json.load(open(f"{out}/metrics.json"))
                     d = read_pfm(f"{out}/files/disparity/000000.pfm")
                     rows.append(dict(method=name, size=label, threads=threads, ms=m["timing_ms"]["depth"]["median_ms"], **scores(d, g, mask)))

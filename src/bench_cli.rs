@@ -5,17 +5,6 @@ use anyhow::Context;
 use clap::Subcommand;
 use std::path::PathBuf;
 
-/// A `--lanes` value: avx512, avx2 or portable.
-fn lane_level(s: &str) -> Result<misslam_depth_sgm::simd::Level, String> {
-    use misslam_depth_sgm::simd::Level;
-    match s {
-        "avx512" => Ok(Level::Avx512),
-        "avx2" => Ok(Level::Avx2),
-        "portable" => Ok(Level::Portable),
-        _ => Err(format!("`{s}` is not one of avx512, avx2, portable")),
-    }
-}
-
 #[derive(Subcommand)]
 pub(crate) enum BenchCommand {
     /// ELAS on a rectified pair: the time of each step (median of runs; threads as
@@ -115,9 +104,9 @@ pub(crate) enum BenchCommand {
         /// Timed runs (medians are reported).
         #[arg(long, default_value_t = 20, value_parser = count_usize)]
         repeat: usize,
-        /// The widest lane code the kernels may use: avx512, avx2 or portable (default: the
-        /// widest the CPU has; the output says which ran).
-        #[arg(long, value_parser = lane_level)]
+        /// The widest lane code the kernels may use: avx512, avx2 or portable (default: as
+        /// MISSLAM_SIMD says, else the widest the CPU has; the output says which ran).
+        #[arg(long, value_parser = misslam_depth_sgm::simd::parse_level)]
         lanes: Option<misslam_depth_sgm::simd::Level>,
         /// Write the figures as JSON here.
         #[arg(long)]

@@ -91,6 +91,34 @@ fn sgm_bench_reports_its_stages_and_names_a_pair_that_does_not_fit() {
         .unwrap();
     let text = String::from_utf8_lossy(&capped.stdout);
     assert!(text.contains("Portable lanes"), "{text}");
+    // MISSLAM_SIMD caps a whole run; a wrong value is said and ignored.
+    let small = [
+        "bench", "sgm", "--width", "40", "--height", "20", "--repeat", "1",
+    ];
+    let env = misslam()
+        .args(small)
+        .env("MISSLAM_SIMD", "portable")
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&env.stdout);
+    assert!(text.contains("Portable lanes"), "{text}");
+    let env = misslam()
+        .args(small)
+        .env("MISSLAM_SIMD", "sse9")
+        .output()
+        .unwrap();
+    let (text, err) = (
+        String::from_utf8_lossy(&env.stdout),
+        String::from_utf8_lossy(&env.stderr),
+    );
+    assert!(
+        env.status.success() && text.contains(&format!("{widest} lanes")),
+        "{text}"
+    );
+    assert!(
+        err.contains("MISSLAM_SIMD: `sse9` is not one of avx512, avx2, portable; ignored"),
+        "{err}"
+    );
     let wrong = misslam()
         .args(["bench", "sgm", "--lanes", "sse9"])
         .output()

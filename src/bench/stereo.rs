@@ -168,8 +168,8 @@ fn sgm_pair(
 }
 
 /// The CPU SGM ([`misslam_depth_sgm::sgm::sgm`]) on a pair, with the threads rayon has and
-/// the lane code capped at `lanes` (`None`: the widest the CPU has): the median time per pair
-/// and of each stage over `repeat` runs after a warm-up run.
+/// the lane code capped at `lanes` (`None`: as `MISSLAM_SIMD` says, else the widest the CPU
+/// has): the median time per pair and of each stage over `repeat` runs after a warm-up run.
 pub fn sgm_cpu(
     pair: Option<(&Path, &Path)>,
     size: (usize, usize),
@@ -177,10 +177,12 @@ pub fn sgm_cpu(
     repeat: usize,
     lanes: Option<misslam_depth_sgm::simd::Level>,
 ) -> Result<SgmCpuBench, String> {
-    use misslam_depth_sgm::simd::{cap, level, Level};
-    cap(lanes.unwrap_or(Level::Avx512));
+    use misslam_depth_sgm::simd::{cap, level, uncap};
+    if let Some(l) = lanes {
+        cap(l);
+    }
     let r = sgm_cpu_at(pair, size, p, repeat, format!("{:?}", level()));
-    cap(Level::Avx512);
+    uncap();
     r
 }
 

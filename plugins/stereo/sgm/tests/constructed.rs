@@ -342,7 +342,7 @@ fn the_fast_path_gives_exactly_the_reference_output() {
                 );
             }
         }
-        misslam_depth_sgm::simd::cap(Level::Avx512);
+        misslam_depth_sgm::simd::uncap();
     }
 }
 
@@ -376,7 +376,7 @@ fn an_empty_image_is_refused_and_a_tiny_one_matched_not_a_panic() {
                 &SgmParams::default(),
                 &mut Scratch::default(),
             );
-            misslam_depth_sgm::simd::cap(Level::Avx512);
+            misslam_depth_sgm::simd::uncap();
             assert_eq!(d.unwrap().len(), w * h, "{w}x{h}");
         }
     }
