@@ -7,9 +7,11 @@
 //! along the longest axis of the centroids' box, at a multiple of [`LANES`], down to leaves of
 //! [`LANES`] triangles, stored as structures of arrays (one lane per triangle). The ground truth
 //! deforms every frame with the same triangles: [`SurfaceIndex::update`] then keeps the tree and
-//! refits its leaves and boxes. A query descends into the nearer child first and skips every box
-//! farther than the best triangle found so far, so the answer is the least kernel value over all
-//! triangles.
+//! refits its leaves and boxes. Queries run on the tree collapsed to nodes of eight children
+//! (`wide`): a query descends into the nearest child first and skips every box farther than the
+//! best triangle found so far, so the answer is the least kernel value over all triangles.
+
+mod wide;
 
 use crate::{dot, sub, V3};
 use misslam_framework::Mesh;
@@ -316,6 +318,8 @@ pub struct SurfaceIndex {
     triangles: Vec<[u32; 3]>,
     /// The leaves' summed box areas when the tree was built, against which a refit is judged.
     built_area: f64,
+    /// The tree collapsed to nodes of eight children, which the queries walk.
+    wide: wide::WideTree,
     avx2: bool,
 }
 
@@ -415,8 +419,10 @@ impl SurfaceIndex {
             lanes,
             triangles: mesh.triangles.clone(),
             built_area: 0.0,
+            wide: wide::WideTree::default(),
             avx2,
         };
+        index.wide = wide::WideTree::new(&index.nodes)?;
         index.built_area = index.refit(mesh);
         Ok(index)
     }
@@ -468,6 +474,7 @@ impl SurfaceIndex {
                     .union(&self.nodes[n.right as usize].bounds);
             }
         }
+        self.wide.refit(&self.nodes);
         area
     }
 
@@ -483,46 +490,17 @@ impl SurfaceIndex {
 
     /// Distance from `p` to the nearest triangle: the least of the kernel over all triangles.
     pub fn distance(&self, p: V3) -> f32 {
-        let mut best = f32::INFINITY;
         // A box is skipped only when it is farther than the best triangle by a margin well
         // above rounding, so that no triangle inside it can be nearer.
-        let beyond = |d2: f32, best: f32| d2 > best * (1.0 + 1e-5) + 1e-12;
-        // Nodes still to visit with their boxes' squared distances, the nearest on top; the
-        // tree is balanced (depth about log2 of the leaves), so 64 entries never fill.
-        let mut stack = [(0u32, 0f32); 64];
-        stack[0] = (0, self.nodes[0].bounds.dist2(p));
-        let mut top = 1;
-        while top > 0 {
-            top -= 1;
-            let (i, d2) = stack[top];
-            if beyond(d2, best) {
-                continue;
-            }
-            let node = &self.nodes[i as usize];
-            if node.first & LEAF != 0 {
-                best = mn(self.leaf_dist2(p, (node.first & !LEAF) as usize), best);
-                continue;
-            }
-            let (a, b) = (node.first, node.right);
-            let (da, db) = (
-                self.nodes[a as usize].bounds.dist2(p),
-                self.nodes[b as usize].bounds.dist2(p),
-            );
-            let ((near, dn), (far, df)) = if da <= db {
-                ((a, da), (b, db))
-            } else {
-                ((b, db), (a, da))
-            };
-            if !beyond(df, best) {
-                stack[top] = (far, df);
-                top += 1;
-            }
-            if !beyond(dn, best) {
-                stack[top] = (near, dn);
-                top += 1;
-            }
-        }
-        best.sqrt()
+        self.wide
+            .nearest(
+                p,
+                self.nodes[0].bounds.dist2(p),
+                self.avx2,
+                (1e-5, 1e-12),
+                |p, i| self.leaf_dist2(p, i),
+            )
+            .sqrt()
     }
 }
 
@@ -643,7 +621,7 @@ mod tests {
                 let (x, y) = (i as f32 * 2.0 + rnd(), j as f32 * 2.0 + rnd());
                 [x, y, 100.0 + 6.0 * rnd()]
             });
-            let index = SurfaceIndex::new(&gt).unwrap();
+            let mut index = SurfaceIndex::new(&gt).unwrap();
             for k in 0..400 {
                 let spread = [2.0, 10.0, 200.0][k % 3];
                 let p = [
@@ -652,6 +630,10 @@ mod tests {
                     103.0 + spread * (rnd() - 0.5),
                 ];
                 assert_eq!(index.distance(p), brute(&gt, p), "{n}x{n}, {p:?}");
+                // The portable traversal and kernel too.
+                let simd = std::mem::replace(&mut index.avx2, false);
+                assert_eq!(index.distance(p), brute(&gt, p), "portable, {n}x{n}, {p:?}");
+                index.avx2 = simd;
                 // Both paths of the leaf kernel give the same bits.
                 let leaf = &index.leaves[0];
                 assert_eq!(
