@@ -154,6 +154,14 @@ pub fn path_step(cost: &[u8], prev: &[u16], p1: u16, p2: u16, out: &mut [u16]) {
     }
 }
 
+/// Where a pass finds, at the start of row y, a row of W x D' sums it will read when the row
+/// is done (the other pass's, already published): the AVX2 pass prefetches it pixel by pixel
+/// while it aggregates, so that the read finds it in the cache. Null: none.
+pub(crate) type Peer<'a> = &'a (dyn Fn(usize) -> *const i16 + Sync);
+
+/// No row to prefetch.
+pub(crate) const NO_PEER: Peer<'static> = &|_| std::ptr::null();
+
 /// What both passes read.
 pub(crate) struct Ctx<'a> {
     pub(crate) img: &'a [u8],
@@ -220,14 +228,16 @@ pub(crate) fn pass(
     init: Option<&[i16]>,
     costs: Costs,
     out: &mut [i16],
+    peer: Peer,
     after_row: impl FnMut(usize, &mut [i16]),
 ) {
     #[cfg(target_arch = "x86_64")]
     if crate::simd::avx2() {
         // SAFETY: the CPU supports AVX2 and POPCNT (checked just above).
-        unsafe { crate::aggregate_avx2::pass(forward, ctx, ps, init, costs, out, after_row) };
+        unsafe { crate::aggregate_avx2::pass(forward, ctx, ps, init, costs, out, peer, after_row) };
         return;
     }
+    let _ = peer;
     if ctx.vdx.len() == 3 {
         pass_n::<3>(forward, ctx, ps, init, costs, out, after_row);
     } else {

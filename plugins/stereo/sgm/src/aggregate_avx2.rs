@@ -18,7 +18,7 @@
 
 use std::arch::x86_64::*;
 
-use crate::aggregate::{size_paths, Costs, Ctx, PassScratch, FAR, LANES};
+use crate::aggregate::{size_paths, Costs, Ctx, PassScratch, Peer, FAR, LANES};
 
 /// One pass (see [`crate::aggregate::pass`]). Only called after AVX2 and POPCNT were detected.
 #[target_feature(enable = "avx2,popcnt")]
@@ -29,14 +29,15 @@ pub(crate) fn pass(
     init: Option<&[i16]>,
     costs: Costs,
     out: &mut [i16],
+    peer: Peer,
     after_row: impl FnMut(usize, &mut [i16]),
 ) {
     // The path held back: the one from the previous row's pixel behind this one (dx = the
     // step along the row), index 0 of [1, 0, -1] forward and 2 backward; none with 4 paths.
     if ctx.narrow {
-        kind::<Narrow>(forward, ctx, ps, init, costs, out, after_row);
+        kind::<Narrow>(forward, ctx, ps, init, costs, out, peer, after_row);
     } else {
-        kind::<Wide>(forward, ctx, ps, init, costs, out, after_row);
+        kind::<Wide>(forward, ctx, ps, init, costs, out, peer, after_row);
     }
 }
 
@@ -54,16 +55,25 @@ fn kind<K: Kind>(
     init: Option<&[i16]>,
     costs: Costs,
     out: &mut [i16],
+    peer: Peer,
     after_row: impl FnMut(usize, &mut [i16]),
 ) {
     let (f, i) = (forward, init.is_some());
     match (ctx.vdx.len(), f, i) {
-        (3, true, true) => pass_n::<K, 3, 4, 0, true>(f, ctx, ps, init, costs, out, after_row),
-        (3, true, false) => pass_n::<K, 3, 4, 0, false>(f, ctx, ps, init, costs, out, after_row),
-        (3, false, true) => pass_n::<K, 3, 4, 2, true>(f, ctx, ps, init, costs, out, after_row),
-        (3, false, false) => pass_n::<K, 3, 4, 2, false>(f, ctx, ps, init, costs, out, after_row),
-        (_, _, true) => pass_n::<K, 1, 2, 2, true>(f, ctx, ps, init, costs, out, after_row),
-        (_, _, false) => pass_n::<K, 1, 2, 2, false>(f, ctx, ps, init, costs, out, after_row),
+        (3, true, true) => {
+            pass_n::<K, 3, 4, 0, true>(f, ctx, ps, init, costs, out, peer, after_row)
+        }
+        (3, true, false) => {
+            pass_n::<K, 3, 4, 0, false>(f, ctx, ps, init, costs, out, peer, after_row)
+        }
+        (3, false, true) => {
+            pass_n::<K, 3, 4, 2, true>(f, ctx, ps, init, costs, out, peer, after_row)
+        }
+        (3, false, false) => {
+            pass_n::<K, 3, 4, 2, false>(f, ctx, ps, init, costs, out, peer, after_row)
+        }
+        (_, _, true) => pass_n::<K, 1, 2, 2, true>(f, ctx, ps, init, costs, out, peer, after_row),
+        (_, _, false) => pass_n::<K, 1, 2, 2, false>(f, ctx, ps, init, costs, out, peer, after_row),
     }
 }
 
@@ -439,6 +449,7 @@ fn pass_n<K: Kind, const NV: usize, const NP: usize, const HELD: usize, const IN
     init: Option<&[i16]>,
     mut costs: Costs,
     out: &mut [i16],
+    peer: Peer,
     mut after_row: impl FnMut(usize, &mut [i16]),
 ) {
     assert_eq!(NP, NV + 1);
@@ -550,6 +561,7 @@ fn pass_n<K: Kind, const NV: usize, const NP: usize, const HELD: usize, const IN
         let p2_row = ps.p2_row.as_ptr();
         let acc_row = out_row.as_mut_ptr();
         let init_row = init.map_or(std::ptr::null(), |s| s[y * row_len..].as_ptr());
+        let peer_row = peer(y);
         for j in 0..w {
             let x = if forward { j } else { w - 1 - j };
             let zero = _mm256_setzero_si256();
@@ -589,6 +601,14 @@ fn pass_n<K: Kind, const NV: usize, const NP: usize, const HELD: usize, const IN
                 pp.dst[NV] = pp.src[NV];
                 pp.jump[NV] = K::splat(jump_h);
                 pp.min_prev[NV] = K::splat(row_min);
+                if !INIT && !peer_row.is_null() && j + PREFETCH < w {
+                    // The other pass's sums of this row, read when the row is done.
+                    let xa = if forward { x + PREFETCH } else { x - PREFETCH };
+                    let cell = peer_row.wrapping_add(xa * dp).cast::<i8>();
+                    for line in (0..2 * dp).step_by(64) {
+                        _mm_prefetch::<_MM_HINT_T0>(cell.wrapping_add(line));
+                    }
+                }
                 if INIT && j + PREFETCH < w {
                     // The other pass's sums and the kept costs come from memory, against the
                     // address order in the backward pass: ask for a later pixel's cells now.

@@ -20,7 +20,7 @@
 use std::sync::atomic::{AtomicU8, Ordering};
 
 pub use crate::aggregate::path_step;
-use crate::aggregate::{pass, Costs, Ctx, PassScratch, LANES};
+use crate::aggregate::{pass, Costs, Ctx, PassScratch, LANES, NO_PEER};
 pub use crate::census::{census, census_with};
 use crate::filters::finish_with;
 pub use crate::filters::{finish, median3, remove_speckles, remove_speckles_with, SpeckleScratch};
@@ -418,7 +418,7 @@ pub fn sgm(
             // of the two.
             unsafe {
                 if published[y].load(Ordering::Acquire) == 0 {
-                    mine.row_mut(y).copy_from_slice(sums);
+                    publish_copy(mine.row_mut(y), sums);
                     if published[y].fetch_add(1, Ordering::AcqRel) == 0 {
                         return;
                     }
@@ -432,13 +432,32 @@ pub fn sgm(
                 select_row(ctx, y, tot, valid, out.row_mut(y), out_r.row_mut(y), rs);
             }
         };
+        // A row the other pass has published before this one starts it is read at its end.
+        let peer = |vol: &SharedRows<i16>, y: usize| {
+            if published[y].load(Ordering::Acquire) == 0 {
+                std::ptr::null()
+            } else {
+                // SAFETY: row y of `vol` was written before its increment (seen above) and is
+                // not written again.
+                unsafe { vol.row(y).as_ptr() }
+            }
+        };
+        let peer_f = |y: usize| peer(&vol_f, y);
+        let peer_b = |y: usize| peer(&vol_b, y);
         let (rs_a, rs_b) = (right_scratch, right_scratch_b);
         let (mut tot_a, mut tot_b) = (Vec::new(), Vec::new());
         rayon::join(
             || {
-                pass(true, ctx, pass_f, None, Costs::Compute, row, |y, sums| {
-                    finish_row(&vol_f, &vol_b, &mut tot_a, rs_a, y, sums)
-                })
+                pass(
+                    true,
+                    ctx,
+                    pass_f,
+                    None,
+                    Costs::Compute,
+                    row,
+                    &peer_b,
+                    |y, sums| finish_row(&vol_f, &vol_b, &mut tot_a, rs_a, y, sums),
+                )
             },
             || {
                 pass(
@@ -448,6 +467,7 @@ pub fn sgm(
                     None,
                     Costs::Compute,
                     row_b,
+                    &peer_f,
                     |y, sums| finish_row(&vol_b, &vol_f, &mut tot_b, rs_b, y, sums),
                 )
             },
@@ -463,16 +483,26 @@ pub fn sgm(
             None,
             Costs::Store(cost_vol),
             sum_f,
+            NO_PEER,
             |_, _| {},
         );
         timing.forward_ms = ms(t1);
         row.resize(w * dp, 0);
         let costs = Costs::Load(cost_vol);
-        pass(false, &ctx, pass_b, Some(sum_f), costs, row, |y, tot| {
-            let r = y * w..(y + 1) * w;
-            let (dl, dr) = (&mut disp[r.clone()], &mut right_disp[r]);
-            select_row(&ctx, y, tot, valid, dl, dr, right_scratch);
-        });
+        pass(
+            false,
+            &ctx,
+            pass_b,
+            Some(sum_f),
+            costs,
+            row,
+            NO_PEER,
+            |y, tot| {
+                let r = y * w..(y + 1) * w;
+                let (dl, dr) = (&mut disp[r.clone()], &mut right_disp[r]);
+                select_row(&ctx, y, tot, valid, dl, dr, right_scratch);
+            },
+        );
     }
     let t2 = std::time::Instant::now();
     timing.backward_select_ms = (t2 - t1).as_secs_f64() * 1e3 - timing.forward_ms;
@@ -480,6 +510,45 @@ pub fn sgm(
     timing.finish_ms = ms(t2);
     timing.total_ms = ms(t0);
     Ok(disp)
+}
+
+/// Copies a row of sums the other pass reads much later (from memory): with AVX2, by
+/// non-temporal stores, which do not first read the destination's lines into the cache, then a
+/// store fence, so that the copy is visible before the release that publishes it.
+fn publish_copy(dst: &mut [i16], src: &[i16]) {
+    assert_eq!(dst.len(), src.len());
+    #[cfg(target_arch = "x86_64")]
+    if crate::simd::avx2() {
+        // SAFETY: AVX2 was detected; the lengths are equal.
+        unsafe { publish_copy_avx2(dst, src) };
+        return;
+    }
+    dst.copy_from_slice(src);
+}
+
+/// [`publish_copy`] with AVX2: the head up to a 32-byte boundary and the tail by plain stores.
+///
+/// # Safety
+/// The CPU has AVX2; `dst` and `src` have the same length.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn publish_copy_avx2(dst: &mut [i16], src: &[i16]) {
+    use std::arch::x86_64::*;
+    let n = dst.len();
+    // Elements before dst's first 32-byte boundary (i16 are 2-byte aligned).
+    let head = (dst.as_ptr().align_offset(32)).min(n);
+    dst[..head].copy_from_slice(&src[..head]);
+    let body = (n - head) / 16 * 16;
+    for i in (head..head + body).step_by(16) {
+        // SAFETY: i + 16 <= n in both slices; dst + i is 32-byte aligned (head, then steps of
+        // 32 bytes).
+        unsafe {
+            let v = _mm256_loadu_si256(src.as_ptr().add(i).cast());
+            _mm256_stream_si256(dst.as_mut_ptr().add(i).cast(), v);
+        }
+    }
+    dst[head + body..].copy_from_slice(&src[head + body..]);
+    _mm_sfence();
 }
 
 /// Rows of a buffer shared by the two passes (see [`sgm`]): each row is written by one thread
