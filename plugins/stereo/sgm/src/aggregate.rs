@@ -220,7 +220,9 @@ pub(crate) enum Costs<'a> {
 
 /// One aggregation pass: forward runs rows top-down and pixels left to right with the paths
 /// from above and from the left; backward the mirror. Each row's sums (plus `init`'s, when given)
-/// go to `out` (the whole image, or one row buffer), then `after_row(y, row)` runs.
+/// go to `out` (the whole image, or one row buffer), then `after_row(y, row)` runs; `peer(y)`
+/// names a row to prefetch meanwhile (see [`Peer`]).
+#[allow(clippy::too_many_arguments)] // the pass's inputs, outputs and hooks
 pub(crate) fn pass(
     forward: bool,
     ctx: &Ctx,

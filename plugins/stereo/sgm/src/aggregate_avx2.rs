@@ -22,6 +22,7 @@ use crate::aggregate::{size_paths, Costs, Ctx, PassScratch, Peer, FAR, LANES};
 
 /// One pass (see [`crate::aggregate::pass`]). Only called after AVX2 and POPCNT were detected.
 #[target_feature(enable = "avx2,popcnt")]
+#[allow(clippy::too_many_arguments)] // the pass's inputs, outputs and hooks
 pub(crate) fn pass(
     forward: bool,
     ctx: &Ctx,
@@ -48,6 +49,7 @@ const PREFETCH: usize = 2;
 /// held-back path (by direction) and whether sums come in.
 #[target_feature(enable = "avx2,popcnt")]
 #[inline]
+#[allow(clippy::too_many_arguments)] // the pass's inputs, outputs and hooks
 fn kind<K: Kind>(
     forward: bool,
     ctx: &Ctx,
@@ -442,6 +444,7 @@ unsafe fn pixel_narrow<const NP: usize, const HELD: usize, const INIT: bool>(
 /// NV (none when >= NV) is held back a pixel.
 #[target_feature(enable = "avx2,popcnt")]
 #[inline]
+#[allow(clippy::too_many_arguments)] // the pass's inputs, outputs and hooks
 fn pass_n<K: Kind, const NV: usize, const NP: usize, const HELD: usize, const INIT: bool>(
     forward: bool,
     ctx: &Ctx,
