@@ -777,8 +777,14 @@ pub(crate) unsafe fn cost_row_with(
         let hi = x as isize - dmin; // largest valid d
         let lo = x as isize - dmin - w as isize + 1; // smallest valid d
         let first_bad_hi = (hi + 1).clamp(0, nd as isize) as usize;
-        cell[first_bad_hi..].fill(unknown);
         let end_bad_lo = lo.clamp(0, nd as isize) as usize;
-        cell[..end_bad_lo].fill(unknown);
+        // Most pixels have no invalid disparity: no call to fill (a `memset` call per pixel,
+        // even of nothing, took 4 % of the two-thread SGM).
+        if first_bad_hi < nd {
+            cell[first_bad_hi..].fill(unknown);
+        }
+        if end_bad_lo > 0 {
+            cell[..end_bad_lo].fill(unknown);
+        }
     }
 }
