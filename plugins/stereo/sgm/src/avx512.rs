@@ -1,6 +1,7 @@
 //! The AVX-512 kernels of the fast SGM path ([`crate::simd::Level::Avx512`]): the matching
-//! costs by 64-bit population counts, eight candidates per instruction. The same output as
-//! the AVX2 and portable code, to the bit.
+//! costs by 64-bit population counts, eight candidates per instruction, and the left winner
+//! and second best 32 sums a register. The same output as the AVX2 and portable code, to the
+//! bit.
 
 use std::arch::x86_64::*;
 

@@ -95,17 +95,12 @@ pub fn supported() -> Level {
 #[inline]
 pub fn level() -> Level {
     let cap = match CAP.load(Ordering::Relaxed) {
-        UNSET => env_cap() as u8,
-        c => c,
+        UNSET => env_cap(),
+        0 => Level::Portable,
+        1 => Level::Avx2,
+        _ => Level::Avx512,
     };
-    let s = supported();
-    if (s as u8) <= cap {
-        s
-    } else if cap >= Level::Avx2 as u8 {
-        Level::Avx2
-    } else {
-        Level::Portable
-    }
+    supported().min(cap)
 }
 
 /// True when the AVX2 (and POPCNT) code may run.
