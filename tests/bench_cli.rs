@@ -52,6 +52,7 @@ fn sgm_bench_reports_its_stages_and_names_a_pair_that_does_not_fit() {
             "bench", "sgm", "--width", "96", "--height", "40", "--repeat", "1", "--out",
         ])
         .arg(&json)
+        .env_remove("MISSLAM_SIMD")
         .output()
         .unwrap();
     assert!(

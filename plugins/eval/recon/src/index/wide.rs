@@ -1,9 +1,10 @@
 //! The hierarchy's queries on nodes of eight children ([`WideTree`]): the binary tree collapsed,
 //! each wide node taking the binary subtrees below it down to eight (the one with the most
 //! leaves split first), with their boxes as structures of arrays so that a visit measures all
-//! eight in one pass (AVX2 where the CPU has it). A query visits about a third as many nodes as
-//! on the binary tree. Its answer is the same to the bit: the least of the leaf kernel over the
-//! leaves it does not skip, which always include the nearest triangle's.
+//! eight in one pass (AVX2 where the CPU has it): fewer, wider visits than on the binary tree
+//! (the scoring of the main graph at 640x480 took a fifth less time, docs/pipeline.md). Its
+//! answer is the same to the bit: the least of the leaf kernel over the leaves it does not skip,
+//! which always include the nearest triangle's.
 
 use super::{mn, mx, Aabb, Node, LEAF};
 use crate::V3;
@@ -16,8 +17,7 @@ const NONE: u32 = u32::MAX;
 
 /// Entries of a query's stack: a visit takes one and leaves at most [`WIDTH`], so a tree of
 /// depth `d` needs at most `d * (WIDTH - 1) + 1` ([`WideTree::new`] checks it): nine levels,
-/// 8^9 leaves of eight triangles. (It is set up on every query: 256 entries took a tenth of
-/// the query's time.)
+/// 8^9 leaves of eight triangles. It is set up on every query, so it is kept small.
 const STACK: usize = 64;
 
 /// Eight children's boxes (per axis, per child) and references: a wide node's index, or a
