@@ -134,6 +134,12 @@ pub trait Plugin: Send + Sync {
     fn output_dirs(&self, _params: &toml::Table) -> Vec<(String, PathBuf)> {
         Vec::new()
     }
+    /// Optional outputs a node with these (checked) parameters never produces, each with what
+    /// would make it produce them (such as "set `camera_model = true`"). Graph loading refuses
+    /// an input wired to one: an optional input would otherwise silently get nothing.
+    fn absent_outputs(&self, _params: &toml::Table) -> Vec<(String, String)> {
+        Vec::new()
+    }
     /// Every parameter a node built from `params` runs with, defaults filled in (what
     /// `metrics.json` records); `None` where the plugin cannot say (a dynamic plugin).
     fn resolved_params(&self, _params: &toml::Table) -> Option<serde_json::Value> {
@@ -143,6 +149,9 @@ pub trait Plugin: Send + Sync {
 
 /// The folders a typed plugin's node writes, from its parameters.
 type OutputDirsFn<P> = dyn Fn(&P) -> Vec<(String, PathBuf)> + Send + Sync;
+
+/// The optional outputs a typed plugin's node never produces, from its parameters.
+type AbsentOutputsFn<P> = dyn Fn(&P) -> Vec<(String, String)> + Send + Sync;
 
 /// Parses a typed parameter struct from a TOML table, naming the path of whatever is wrong.
 ///
@@ -202,6 +211,7 @@ pub struct TypedPlugin<P> {
     known: Option<Vec<String>>,
     build: Box<BuildFn<P>>,
     output_dirs: Option<Box<OutputDirsFn<P>>>,
+    absent_outputs: Option<Box<AbsentOutputsFn<P>>>,
     _p: PhantomData<fn() -> P>,
 }
 
@@ -231,6 +241,7 @@ where
             known,
             build: Box::new(move |p, ctx| build(p, ctx).map(|n| Box::new(n) as Box<dyn Node>)),
             output_dirs: None,
+            absent_outputs: None,
             _p: PhantomData,
         }
     }
@@ -242,6 +253,16 @@ where
         f: impl Fn(&P) -> Vec<(String, PathBuf)> + Send + Sync + 'static,
     ) -> Self {
         self.output_dirs = Some(Box::new(f));
+        self
+    }
+
+    /// Declares the optional outputs a node with given parameters never produces, each with
+    /// what would make it produce them (see [`Plugin::absent_outputs`]).
+    pub fn with_absent_outputs(
+        mut self,
+        f: impl Fn(&P) -> Vec<(String, String)> + Send + Sync + 'static,
+    ) -> Self {
+        self.absent_outputs = Some(Box::new(f));
         self
     }
 }
@@ -277,6 +298,13 @@ where
 
     fn output_dirs(&self, params: &toml::Table) -> Vec<(String, PathBuf)> {
         match (&self.output_dirs, parse_params::<P>(params)) {
+            (Some(f), Ok(p)) => f(&p),
+            _ => Vec::new(),
+        }
+    }
+
+    fn absent_outputs(&self, params: &toml::Table) -> Vec<(String, String)> {
+        match (&self.absent_outputs, parse_params::<P>(params)) {
             (Some(f), Ok(p)) => f(&p),
             _ => Vec::new(),
         }

@@ -599,6 +599,25 @@ pub fn parse(
                     ),
                 ));
             };
+            // An optional output the source's parameters leave unproduced would reach an
+            // optional input as nothing, frame after frame.
+            if let Some((_, how)) = pending[si]
+                .plugin
+                .absent_outputs(&pending[si].params)
+                .into_iter()
+                .find(|(name, _)| name == src_port)
+            {
+                return Err(at(
+                    from.span(),
+                    format!(
+                        "node `{}`: input `{}`: node `{src_id}` ({}) does not produce `{src_port}` \
+                         with its parameters: {how}",
+                        p.id,
+                        port.get_ref(),
+                        src_info.id,
+                    ),
+                ));
+            }
             let (want, have) = (info.inputs[pi].ty, src_info.outputs[so].ty);
             if want != have {
                 return Err(at(

@@ -824,7 +824,17 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
             ),
         ],
         build,
-    ))
+    )
+    .with_absent_outputs(|p: &Params| {
+        if p.data_term == DataTerm::Dff {
+            Vec::new()
+        } else {
+            vec![(
+                "field".to_owned(),
+                "only the DFF data term builds a field: set its `data_term = \"dff\"`".to_owned(),
+            )]
+        }
+    }))
 }
 
 #[cfg(test)]
