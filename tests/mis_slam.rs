@@ -98,6 +98,66 @@ fn mis_slam_with_fusion_inputs(inputs: &str, name: &str) -> (PathBuf, PathBuf) {
 }
 
 #[test]
+fn the_model_is_output_in_the_scope_frame_too() {
+    // `camera_model = true`: `model_camera` is the world-frame model seen from fusion's pose.
+    // Both exported at the end, with the pose of every frame; the last frame's pose must carry
+    // each scope-frame surfel onto its world-frame one.
+    let text = std::fs::read_to_string("graphs/mis_slam.toml").unwrap();
+    let graph = format!(
+        "{text}\n[[node]]\nid = \"scope\"\nplugin = \"sink.files\"\n\
+         inputs = {{ model = \"fusion.model_camera\", pose = \"fusion.pose\" }}\n\
+         params = {{ dir = \"scope\", geometry_every = 0 }}\nlog = false\n"
+    );
+    let dir = common::tmp_dir("mis_slam_scope_frame");
+    let path = dir.join("graph.toml");
+    std::fs::write(&path, graph).unwrap();
+    let sets = ["graph.frames.count=8", "fusion.camera_model=true"].map(String::from);
+    let g = misslam::framework::graph::load(&path, &misslam::builtin_registry(), &sets).unwrap();
+    common::run_graph_ok(g, &dir);
+    let world = common::ply_vertices(&dir.join("export/model/final.ply"));
+    let scope = common::ply_vertices(&dir.join("scope/model/final.ply"));
+    assert!(world.len() > 1000, "{} surfels", world.len());
+    assert_eq!(world.len(), scope.len());
+    let poses = std::fs::read_to_string(dir.join("scope/pose.txt")).unwrap();
+    let last: Vec<f64> = poses
+        .lines()
+        .rfind(|l| !l.starts_with('#'))
+        .expect("a pose line")
+        .split_whitespace()
+        .map(|v| v.parse().unwrap())
+        .collect();
+    use misslam::framework::nalgebra::{Isometry3, Point3, Quaternion, UnitQuaternion, Vector3};
+    let world_from_camera = Isometry3::from_parts(
+        Vector3::new(last[1], last[2], last[3]).into(),
+        UnitQuaternion::from_quaternion(Quaternion::new(last[7], last[4], last[5], last[6])),
+    );
+    let f64s = |v: [f32; 3]| Vector3::new(v[0] as f64, v[1] as f64, v[2] as f64);
+    let mut worst = (0.0f64, 0.0f64);
+    for ((pw, nw, cw), (pc, nc, cc)) in world.iter().zip(&scope) {
+        assert_eq!(cw, cc, "the colours are the same surfels'");
+        let p = world_from_camera * Point3::from(f64s(*pc));
+        let n = world_from_camera.rotation * f64s(*nc);
+        worst.0 = worst.0.max((p.coords - f64s(*pw)).norm());
+        worst.1 = worst.1.max((n - f64s(*nw)).norm());
+    }
+    eprintln!(
+        "scope frame: {} surfels, worst {:.2e} mm, normals {:.2e}",
+        world.len(),
+        worst.0,
+        worst.1
+    );
+    // pose.txt holds the pose to 1e-6 (mm and quaternion) and the PLYs f32.
+    assert!(worst.0 < 1e-3 && worst.1 < 1e-5, "{worst:?}");
+    // The scope's frame is not the world's: the sweep moved the camera.
+    let moved = world
+        .iter()
+        .zip(&scope)
+        .map(|((pw, ..), (pc, ..))| (f64s(*pw) - f64s(*pc)).norm())
+        .fold(0.0, f64::max);
+    assert!(moved > 1.0, "{moved}");
+}
+
+#[test]
 fn fusion_on_a_static_scene_merges_instead_of_duplicating() {
     // Exact depth and pose of a still heart seen by a still scope: after the first frame every
     // depth sample lands on an existing surfel, so the model does not grow, and it stays on the

@@ -139,9 +139,11 @@ pub fn rerun_verified(rrd: &Path) -> Option<impl Fn(&str) -> String + '_> {
     })
 }
 
-/// Reads a binary PLY as `sink.files` writes it (x, y, z, nx, ny, nz as f32, then r, g, b),
-/// checks that every coordinate is finite and returns the vertex count of its header.
-pub fn finite_ply_vertices(path: &Path) -> usize {
+/// A vertex of a PLY as `sink.files` writes it: position, normal, colour.
+pub type PlyVertex = ([f32; 3], [f32; 3], [u8; 3]);
+
+/// Reads a binary PLY as `sink.files` writes it (x, y, z, nx, ny, nz as f32, then r, g, b).
+pub fn ply_vertices(path: &Path) -> Vec<PlyVertex> {
     let ply = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
     let start = ply
         .windows(11)
@@ -155,13 +157,31 @@ pub fn finite_ply_vertices(path: &Path) -> usize {
         .and_then(|r| r.split_whitespace().next())
         .and_then(|n| n.parse().ok())
         .expect("a vertex count");
-    for v in ply[start..start + 27 * nv].chunks_exact(27) {
-        for k in 0..6 {
-            let f = f32::from_le_bytes([v[4 * k], v[4 * k + 1], v[4 * k + 2], v[4 * k + 3]]);
-            assert!(f.is_finite(), "{}: a non-finite coordinate", path.display());
-        }
+    ply[start..start + 27 * nv]
+        .chunks_exact(27)
+        .map(|v| {
+            let f =
+                |k: usize| f32::from_le_bytes([v[4 * k], v[4 * k + 1], v[4 * k + 2], v[4 * k + 3]]);
+            (
+                [f(0), f(1), f(2)],
+                [f(3), f(4), f(5)],
+                [v[24], v[25], v[26]],
+            )
+        })
+        .collect()
+}
+
+/// [`ply_vertices`]' count, after checking that every coordinate is finite.
+pub fn finite_ply_vertices(path: &Path) -> usize {
+    let vertices = ply_vertices(path);
+    for (p, n, _) in &vertices {
+        assert!(
+            p.iter().chain(n).all(|c| c.is_finite()),
+            "{}: a non-finite coordinate",
+            path.display()
+        );
     }
-    nv
+    vertices.len()
 }
 
 /// The shared GPU context, or `None` with the reason printed when no adapter exists; with

@@ -20,7 +20,8 @@
 //! With the `features` input connected, keypoints matched frame to frame add E_corr constraints
 //! to the solve (see [`corr`]).
 //!
-//! Outputs the live model (world frame), the graph, the refined pose and the frame's figures.
+//! Outputs the live model (world frame, and with `camera_model` in the scope's frame), the graph,
+//! the refined pose and the frame's figures.
 #![deny(missing_docs)]
 
 mod balance;
@@ -594,18 +595,22 @@ impl SurfelNode {
         ] {
             metrics.values.insert(key.into(), v);
         }
-        outputs.put(
-            "model",
-            SurfelModel {
-                positions: live.iter().map(arr3).collect(),
-                normals: live_n.iter().map(arr3).collect(),
-                colors: m.colors.clone(),
-                weights: m.weights.clone(),
-                timestamps: m.seen.clone(),
-                stability: m.stability.clone(),
-                ids: m.ids.clone(),
-            },
-        )?;
+        let world = SurfelModel {
+            positions: live.iter().map(arr3).collect(),
+            normals: live_n.iter().map(arr3).collect(),
+            colors: m.colors.clone(),
+            weights: m.weights.clone(),
+            timestamps: m.seen.clone(),
+            stability: m.stability.clone(),
+            ids: m.ids.clone(),
+        };
+        if self.p.camera_model {
+            outputs.put(
+                "model_camera",
+                in_camera_frame(&world, &live, &live_n, &pose),
+            )?;
+        }
+        outputs.put("model", world)?;
         outputs.put("graph", graph.to_payload())?;
         outputs.put(
             "pose",
@@ -697,6 +702,29 @@ impl Node for SurfelNode {
     }
 }
 
+/// `world` (whose f64 positions and normals are `live` and `live_n`) in the frame of the camera
+/// at `world_from_camera`: the points through its inverse, the normals through its rotation,
+/// everything else as it is.
+fn in_camera_frame(
+    world: &SurfelModel,
+    live: &[Vector3<f64>],
+    live_n: &[Vector3<f64>],
+    world_from_camera: &Isometry3<f64>,
+) -> SurfelModel {
+    let cfw = world_from_camera.inverse();
+    SurfelModel {
+        positions: live
+            .par_iter()
+            .map(|p| arr3(&(cfw * Point3::from(*p)).coords))
+            .collect(),
+        normals: live_n
+            .par_iter()
+            .map(|n| arr3(&(cfw.rotation * n)))
+            .collect(),
+        ..world.clone()
+    }
+}
+
 /// Builds the node.
 pub fn build(p: Params, _: &BuildContext) -> Result<SurfelNode, BuildError> {
     p.check()?;
@@ -759,6 +787,11 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
         ],
         vec![
             PortSpec::new("model", PortType::Model, "the live surfel model, world frame"),
+            PortSpec::optional(
+                "model_camera",
+                PortType::Model,
+                "with `camera_model = true`: the same model in the scope's frame (camera_from_world of `pose` applied to positions and normals)",
+            ),
             PortSpec::new("graph", PortType::DeformationGraph, "nodes, warps, edges"),
             PortSpec::new("pose", PortType::Pose, "the pose after the solve"),
             PortSpec::new(
@@ -768,7 +801,17 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
             ),
         ],
         build,
-    ))
+    )
+    .with_absent_outputs(|p: &Params| {
+        if p.camera_model {
+            Vec::new()
+        } else {
+            vec![(
+                "model_camera".to_owned(),
+                "set its `camera_model = true`".to_owned(),
+            )]
+        }
+    }))
 }
 
 #[cfg(test)]

@@ -81,6 +81,11 @@ pub struct Params {
     pub rebind_distance_mm: f64,
     /// Sparse correspondences (E_corr) from the `features` input.
     pub correspondences: CorrParams,
+    /// Also output the model in the scope's frame (`model_camera`: the live model seen from this
+    /// frame's pose, as the robocentric formulation keeps it; what an overlay on the endoscope
+    /// image or a scope-frame export needs). Off by default: it is a second copy of the model
+    /// every frame (and in a recording).
+    pub camera_model: bool,
 }
 
 impl Default for Params {
@@ -114,6 +119,7 @@ impl Default for Params {
             max_nodes: 20_000,
             rebind_distance_mm: 0.25,
             correspondences: CorrParams::default(),
+            camera_model: false,
         }
     }
 }
