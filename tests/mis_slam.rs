@@ -114,46 +114,13 @@ fn the_model_is_output_in_the_scope_frame_too() {
     let sets = ["graph.frames.count=8", "fusion.camera_model=true"].map(String::from);
     let g = misslam::framework::graph::load(&path, &misslam::builtin_registry(), &sets).unwrap();
     common::run_graph_ok(g, &dir);
-    let world = common::ply_vertices(&dir.join("export/model/final.ply"));
-    let scope = common::ply_vertices(&dir.join("scope/model/final.ply"));
-    assert!(world.len() > 1000, "{} surfels", world.len());
-    assert_eq!(world.len(), scope.len());
-    let poses = std::fs::read_to_string(dir.join("scope/pose.txt")).unwrap();
-    let last: Vec<f64> = poses
-        .lines()
-        .rfind(|l| !l.starts_with('#'))
-        .expect("a pose line")
-        .split_whitespace()
-        .map(|v| v.parse().unwrap())
-        .collect();
-    use misslam::framework::nalgebra::{Isometry3, Point3, Quaternion, UnitQuaternion, Vector3};
-    let world_from_camera = Isometry3::from_parts(
-        Vector3::new(last[1], last[2], last[3]).into(),
-        UnitQuaternion::from_quaternion(Quaternion::new(last[7], last[4], last[5], last[6])),
+    let (n, moved) = common::assert_scope_frame(
+        &dir.join("export/model/final.ply"),
+        &dir.join("scope/model/final.ply"),
+        &dir.join("scope/pose.txt"),
     );
-    let f64s = |v: [f32; 3]| Vector3::new(v[0] as f64, v[1] as f64, v[2] as f64);
-    let mut worst = (0.0f64, 0.0f64);
-    for ((pw, nw, cw), (pc, nc, cc)) in world.iter().zip(&scope) {
-        assert_eq!(cw, cc, "the colours are the same surfels'");
-        let p = world_from_camera * Point3::from(f64s(*pc));
-        let n = world_from_camera.rotation * f64s(*nc);
-        worst.0 = worst.0.max((p.coords - f64s(*pw)).norm());
-        worst.1 = worst.1.max((n - f64s(*nw)).norm());
-    }
-    eprintln!(
-        "scope frame: {} surfels, worst {:.2e} mm, normals {:.2e}",
-        world.len(),
-        worst.0,
-        worst.1
-    );
-    // pose.txt holds the pose to 1e-6 (mm and quaternion) and the PLYs f32.
-    assert!(worst.0 < 1e-3 && worst.1 < 1e-5, "{worst:?}");
+    assert!(n > 1000, "{n} surfels");
     // The scope's frame is not the world's: the sweep moved the camera.
-    let moved = world
-        .iter()
-        .zip(&scope)
-        .map(|((pw, ..), (pc, ..))| (f64s(*pw) - f64s(*pc)).norm())
-        .fold(0.0, f64::max);
     assert!(moved > 1.0, "{moved}");
 }
 

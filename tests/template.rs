@@ -390,6 +390,31 @@ fn dff_is_at_least_as_accurate_as_back_projection_on_heart_kidney_and_liver() {
 }
 
 #[test]
+fn the_template_is_output_in_the_scope_frame_too() {
+    // `camera_mesh = true`: `mesh_camera` is the deformed template seen from fusion's pose; the
+    // last frame's pose carries each of its vertices onto the world-frame mesh's.
+    let text = std::fs::read_to_string("graphs/template_dff.toml").unwrap();
+    let graph = format!(
+        "{text}\n[[node]]\nid = \"scope\"\nplugin = \"sink.files\"\n\
+         inputs = {{ mesh = \"fusion.mesh_camera\", pose = \"fusion.pose\" }}\n\
+         params = {{ dir = \"scope\", geometry_every = 0 }}\nlog = false\n"
+    );
+    let dir = common::tmp_dir("template_scope_frame");
+    let path = dir.join("graph.toml");
+    std::fs::write(&path, graph).unwrap();
+    let sets = ["graph.frames.count=4", "fusion.camera_mesh=true"].map(String::from);
+    let g = misslam::framework::graph::load(&path, &misslam::builtin_registry(), &sets).unwrap();
+    common::run_graph_ok(g, &dir);
+    let (n, apart) = common::assert_scope_frame(
+        &dir.join("export/mesh/final.ply"),
+        &dir.join("scope/mesh/final.ply"),
+        &dir.join("scope/pose.txt"),
+    );
+    assert!(n > 1000, "{n} vertices");
+    assert!(apart > 1.0, "{apart}");
+}
+
+#[test]
 fn the_decoupled_solve_moves_the_whole_template() {
     // The decoupled solver, swapped in by one line: level II must carry every unseen node of the
     // template along (its default here), not only those within a few rings of the seen ones, or

@@ -184,6 +184,48 @@ pub fn finite_ply_vertices(path: &Path) -> usize {
     vertices.len()
 }
 
+/// Checks that the PLY `scope` holds the vertices of the PLY `world` in the scope's frame of the
+/// last pose of the TUM file `poses` (`sink.files`' `pose.txt`): the pose carries each scope-frame
+/// vertex and normal onto its world-frame one (within the files' rounding: poses to 1e-6, PLYs
+/// in f32), colours alike. Returns the vertex count and the farthest a vertex lies from its
+/// scope-frame self, mm (how far the two frames are apart).
+pub fn assert_scope_frame(world: &Path, scope: &Path, poses: &Path) -> (usize, f64) {
+    use misslam::framework::nalgebra::{Isometry3, Point3, Quaternion, UnitQuaternion, Vector3};
+    let (world, scope) = (ply_vertices(world), ply_vertices(scope));
+    assert_eq!(world.len(), scope.len());
+    let poses = std::fs::read_to_string(poses).expect("pose.txt");
+    let last: Vec<f64> = poses
+        .lines()
+        .rfind(|l| !l.starts_with('#'))
+        .expect("a pose line")
+        .split_whitespace()
+        .map(|v| v.parse().expect("a number"))
+        .collect();
+    let world_from_camera = Isometry3::from_parts(
+        Vector3::new(last[1], last[2], last[3]).into(),
+        UnitQuaternion::from_quaternion(Quaternion::new(last[7], last[4], last[5], last[6])),
+    );
+    let f64s = |v: [f32; 3]| Vector3::new(v[0] as f64, v[1] as f64, v[2] as f64);
+    let (mut worst, mut worst_n, mut apart) = (0.0f64, 0.0f64, 0.0f64);
+    for ((pw, nw, cw), (pc, nc, cc)) in world.iter().zip(&scope) {
+        assert_eq!(cw, cc, "the colours are the same vertices'");
+        let p = world_from_camera * Point3::from(f64s(*pc));
+        let n = world_from_camera.rotation * f64s(*nc);
+        worst = worst.max((p.coords - f64s(*pw)).norm());
+        worst_n = worst_n.max((n - f64s(*nw)).norm());
+        apart = apart.max((f64s(*pw) - f64s(*pc)).norm());
+    }
+    eprintln!(
+        "scope frame: {} vertices, worst {worst:.2e} mm, normals {worst_n:.2e}",
+        world.len()
+    );
+    assert!(
+        worst < 1e-3 && worst_n < 1e-5,
+        "{worst} mm, normals {worst_n}"
+    );
+    (world.len(), apart)
+}
+
 /// The shared GPU context, or `None` with the reason printed when no adapter exists; with
 /// `MISSLAM_REQUIRE_GPU` set (CI) a missing adapter fails the test instead of hiding.
 pub fn gpu() -> Option<std::sync::Arc<misslam::framework::GpuContext>> {

@@ -574,6 +574,26 @@ impl TemplateNode {
         metrics
             .values
             .insert("template.nodes".into(), model.graph.len() as f64);
+        if self.p.camera_mesh {
+            let cfw = pose.inverse();
+            outputs.put(
+                "mesh_camera",
+                Mesh {
+                    vertices: live[..model.nv]
+                        .iter()
+                        .map(|p| arr3(&(cfw * Point3::from(*p)).coords))
+                        .collect(),
+                    normals: Some(
+                        live_n[..model.nv]
+                            .iter()
+                            .map(|n| arr3(&(cfw.rotation * n)))
+                            .collect(),
+                    ),
+                    colors: Some(model.colors.clone()),
+                    triangles: model.triangles.clone(),
+                },
+            )?;
+        }
         outputs.put(
             "mesh",
             Mesh {
@@ -805,6 +825,11 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
                 PortType::Mesh,
                 "the deformed template, world frame, coloured",
             ),
+            PortSpec::optional(
+                "mesh_camera",
+                PortType::Mesh,
+                "with `camera_mesh = true`: the same mesh in the scope's frame (camera_from_world of `pose` applied to vertices and normals)",
+            ),
             PortSpec::new(
                 "visible",
                 PortType::PointCloud,
@@ -826,14 +851,20 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
         build,
     )
     .with_absent_outputs(|p: &Params| {
-        if p.data_term == DataTerm::Dff {
-            Vec::new()
-        } else {
-            vec![(
+        let mut absent = Vec::new();
+        if p.data_term != DataTerm::Dff {
+            absent.push((
                 "field".to_owned(),
                 "only the DFF data term builds a field: set its `data_term = \"dff\"`".to_owned(),
-            )]
+            ));
         }
+        if !p.camera_mesh {
+            absent.push((
+                "mesh_camera".to_owned(),
+                "set its `camera_mesh = true`".to_owned(),
+            ));
+        }
+        absent
     }))
 }
 

@@ -204,6 +204,10 @@ pub struct Params {
     pub data_subdivision: u32,
     /// Ground-truth correspondences, for ablations on the phantom (default off).
     pub oracle: OracleParams,
+    /// Also output the deformed template in the scope's frame (`mesh_camera`: the mesh seen from
+    /// this frame's pose; what an overlay of the pre-operative model on the endoscope image
+    /// takes). Off by default: a second copy of the mesh every frame (and in a recording).
+    pub camera_mesh: bool,
 }
 
 impl Default for Params {
@@ -237,6 +241,7 @@ impl Default for Params {
             first_frame_motion: 3.0,
             data_subdivision: 1,
             oracle: OracleParams::default(),
+            camera_mesh: false,
         }
     }
 }
