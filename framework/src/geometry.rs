@@ -1,6 +1,6 @@
 //! Small geometry shared by plugins: the rigid alignment of point sets (Kabsch / Horn), which
-//! vertices of a mesh a camera sees on a depth map, and the conversions between payload points
-//! (`[f32; 3]`) and solver vectors (`Vector3<f64>`).
+//! vertices of a mesh a camera sees on a depth map, surfaces seen from a camera, and the
+//! conversions between payload points (`[f32; 3]`) and solver vectors (`Vector3<f64>`).
 
 use crate::payload::{DepthMap, Mesh};
 use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
@@ -15,6 +15,28 @@ pub fn vec3(p: [f32; 3]) -> Vector3<f64> {
 #[inline]
 pub fn arr3(v: &Vector3<f64>) -> [f32; 3] {
     [v.x as f32, v.y as f32, v.z as f32]
+}
+
+/// Surface points and their normals (world frame) seen from the camera at `world_from_camera`,
+/// as payload points: the points through its inverse, the normals through its inverse rotation
+/// (in parallel on the calling pool).
+pub fn in_camera_frame(
+    world_from_camera: &Isometry3<f64>,
+    points: &[Vector3<f64>],
+    normals: &[Vector3<f64>],
+) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
+    use rayon::prelude::*;
+    let cfw = world_from_camera.inverse();
+    (
+        points
+            .par_iter()
+            .map(|p| arr3(&(cfw * Point3::from(*p)).coords))
+            .collect(),
+        normals
+            .par_iter()
+            .map(|n| arr3(&(cfw.rotation * n)))
+            .collect(),
+    )
 }
 
 /// The rigid motion `m` minimising sum |m(src_i) - dst_i|^2 (Kabsch; reflection-safe).

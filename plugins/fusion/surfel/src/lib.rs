@@ -36,7 +36,7 @@ use misslam_deformation_ed::observe::{
     color_at, color_quality, scan_from_depth_into, visible_points,
 };
 use misslam_deformation_ed::problem::{Intrinsics, ModelSubset, Problem, Scan};
-use misslam_framework::geometry::{arr3, vec3};
+use misslam_framework::geometry::{arr3, in_camera_frame, vec3};
 use misslam_framework::nalgebra::{Isometry3, Point3, Vector3};
 use misslam_framework::{
     BuildContext, BuildError, DepthMap, Features, Flow, FrameInfo, Image, Inputs, Metrics, Node,
@@ -605,9 +605,14 @@ impl SurfelNode {
             ids: m.ids.clone(),
         };
         if self.p.camera_model {
+            let (positions, normals) = in_camera_frame(&pose, &live, &live_n);
             outputs.put(
                 "model_camera",
-                in_camera_frame(&world, &live, &live_n, &pose),
+                SurfelModel {
+                    positions,
+                    normals,
+                    ..world.clone()
+                },
             )?;
         }
         outputs.put("model", world)?;
@@ -699,29 +704,6 @@ impl Node for SurfelNode {
         // The first frame and lost frames have no solve: only the stages they ran are reported.
         st.report(ctx);
         flow
-    }
-}
-
-/// `world` (whose f64 positions and normals are `live` and `live_n`) in the frame of the camera
-/// at `world_from_camera`: the points through its inverse, the normals through its rotation,
-/// everything else as it is.
-fn in_camera_frame(
-    world: &SurfelModel,
-    live: &[Vector3<f64>],
-    live_n: &[Vector3<f64>],
-    world_from_camera: &Isometry3<f64>,
-) -> SurfelModel {
-    let cfw = world_from_camera.inverse();
-    SurfelModel {
-        positions: live
-            .par_iter()
-            .map(|p| arr3(&(cfw * Point3::from(*p)).coords))
-            .collect(),
-        normals: live_n
-            .par_iter()
-            .map(|n| arr3(&(cfw.rotation * n)))
-            .collect(),
-        ..world.clone()
     }
 }
 

@@ -37,7 +37,7 @@ use misslam_deformation_ed::problem::{
     Correspondence, FieldJacobian, Intrinsics, ModelSubset, Problem, Scan,
 };
 use misslam_deformation_ed::DistanceField;
-use misslam_framework::geometry::{arr3, seen_vertices, vec3};
+use misslam_framework::geometry::{arr3, in_camera_frame, seen_vertices, vec3};
 use misslam_framework::nalgebra::{Isometry3, Point3, Vector3};
 use misslam_framework::{
     BuildContext, BuildError, DepthMap, Features, Flow, FrameInfo, GpuContext, Image, Inputs, Mesh,
@@ -575,20 +575,13 @@ impl TemplateNode {
             .values
             .insert("template.nodes".into(), model.graph.len() as f64);
         if self.p.camera_mesh {
-            let cfw = pose.inverse();
+            let (vertices, normals) =
+                in_camera_frame(&pose, &live[..model.nv], &live_n[..model.nv]);
             outputs.put(
                 "mesh_camera",
                 Mesh {
-                    vertices: live[..model.nv]
-                        .iter()
-                        .map(|p| arr3(&(cfw * Point3::from(*p)).coords))
-                        .collect(),
-                    normals: Some(
-                        live_n[..model.nv]
-                            .iter()
-                            .map(|n| arr3(&(cfw.rotation * n)))
-                            .collect(),
-                    ),
+                    vertices,
+                    normals: Some(normals),
                     colors: Some(model.colors.clone()),
                     triangles: model.triangles.clone(),
                 },
