@@ -84,8 +84,8 @@ pub struct Params {
     /// Also output the model in the scope's frame (`model_camera`: the live model seen from this
     /// frame's pose, as the robocentric formulation keeps it; what an overlay on the endoscope
     /// image or a scope-frame export needs). Off by default: it is a second copy of the model
-    /// every frame (and in a recording); at 640x480 (16,000 surfels, 2 cores) it adds about
-    /// 0.12 ms to fusion's `output` stage.
+    /// every frame (and in a recording); at 640x480 (16,000 surfels, 2 cores) it adds 0.12 to
+    /// 0.15 ms to fusion's `output` stage.
     pub camera_model: bool,
 }
 
