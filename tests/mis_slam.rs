@@ -125,6 +125,56 @@ fn the_model_is_output_in_the_scope_frame_too() {
 }
 
 #[test]
+fn the_visible_surfels_are_output_coloured_by_whether_the_solve_took_them() {
+    // `visible_output = true` at 640x480, where the solve takes one visible surfel in three
+    // (`solve_points_per_node`): the last frame's cloud holds as many points as the frame's
+    // `fusion.visible`, as many of them green as its `fusion.solve_points`, the rest grey.
+    let text = std::fs::read_to_string("graphs/mis_slam.toml").unwrap();
+    let graph = format!(
+        "{text}\n[[node]]\nid = \"seen\"\nplugin = \"sink.files\"\n\
+         inputs = {{ points = \"fusion.visible\", metrics = \"fusion.info\" }}\n\
+         params = {{ dir = \"seen\", geometry_every = 0 }}\nlog = false\n"
+    );
+    let dir = common::tmp_dir("mis_slam_visible");
+    let path = dir.join("graph.toml");
+    std::fs::write(&path, graph).unwrap();
+    let sets = [
+        "graph.frames.count=5",
+        "src.width=640",
+        "src.height=480",
+        "src.focal_px=700",
+        "depth.max_disparity=96",
+        "fusion.visible_output=true",
+    ]
+    .map(String::from);
+    let g = misslam::framework::graph::load(&path, &misslam::builtin_registry(), &sets).unwrap();
+    common::run_graph_ok(g, &dir);
+    let cloud = common::ply_vertices(&dir.join("seen/points/final.ply"));
+    let jsonl = std::fs::read_to_string(dir.join("seen/metrics.jsonl")).unwrap();
+    let last: serde_json::Value = serde_json::from_str(jsonl.lines().last().unwrap()).unwrap();
+    let (visible, solved) = (
+        last["fusion.visible"].as_f64().unwrap() as usize,
+        last["fusion.solve_points"].as_f64().unwrap() as usize,
+    );
+    let green = cloud
+        .iter()
+        .filter(|(.., c)| *c == misslam_fusion_surfel::VISIBLE_SOLVED)
+        .count();
+    let grey = cloud
+        .iter()
+        .filter(|(.., c)| *c == misslam_fusion_surfel::VISIBLE_LEFT)
+        .count();
+    eprintln!(
+        "visible: {} points, {green} taken by the solve, {grey} left out",
+        cloud.len()
+    );
+    assert_eq!(cloud.len(), visible);
+    assert_eq!(green, solved);
+    assert_eq!(green + grey, visible);
+    assert!(grey > 0 && solved > 1000, "{solved} of {visible}");
+}
+
+#[test]
 fn fusion_on_a_static_scene_merges_instead_of_duplicating() {
     // Exact depth and pose of a still heart seen by a still scope: after the first frame every
     // depth sample lands on an existing surfel, so the model does not grow, and it stays on the

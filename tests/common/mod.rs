@@ -139,10 +139,12 @@ pub fn rerun_verified(rrd: &Path) -> Option<impl Fn(&str) -> String + '_> {
     })
 }
 
-/// A vertex of a PLY as `sink.files` writes it: position, normal, colour.
+/// A vertex of a PLY as `sink.files` writes it: position, normal and colour (zero where the
+/// file has none).
 pub type PlyVertex = ([f32; 3], [f32; 3], [u8; 3]);
 
-/// Reads a binary PLY as `sink.files` writes it (x, y, z, nx, ny, nz as f32, then r, g, b).
+/// Reads a binary PLY as `sink.files` writes it: x, y, z, then nx, ny, nz (f32) and r, g, b when
+/// its header lists them.
 pub fn ply_vertices(path: &Path) -> Vec<PlyVertex> {
     let ply = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
     let start = ply
@@ -157,16 +159,27 @@ pub fn ply_vertices(path: &Path) -> Vec<PlyVertex> {
         .and_then(|r| r.split_whitespace().next())
         .and_then(|n| n.parse().ok())
         .expect("a vertex count");
-    ply[start..start + 27 * nv]
-        .chunks_exact(27)
+    let (normals, colors) = (
+        header.contains("property float nx"),
+        header.contains("property uchar red"),
+    );
+    let stride = 12 + if normals { 12 } else { 0 } + if colors { 3 } else { 0 };
+    ply[start..start + stride * nv]
+        .chunks_exact(stride)
         .map(|v| {
             let f =
                 |k: usize| f32::from_le_bytes([v[4 * k], v[4 * k + 1], v[4 * k + 2], v[4 * k + 3]]);
-            (
-                [f(0), f(1), f(2)],
-                [f(3), f(4), f(5)],
-                [v[24], v[25], v[26]],
-            )
+            let n = if normals {
+                [f(3), f(4), f(5)]
+            } else {
+                [0.0; 3]
+            };
+            let c = if colors {
+                [v[stride - 3], v[stride - 2], v[stride - 1]]
+            } else {
+                [0; 3]
+            };
+            ([f(0), f(1), f(2)], n, c)
         })
         .collect()
 }

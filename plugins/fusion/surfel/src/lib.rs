@@ -40,8 +40,8 @@ use misslam_framework::geometry::{arr3, in_camera_frame, vec3};
 use misslam_framework::nalgebra::{Isometry3, Point3, Vector3};
 use misslam_framework::{
     BuildContext, BuildError, DepthMap, Features, Flow, FrameInfo, Image, Inputs, Metrics, Node,
-    NodeContext, NodeError, NodeResult, NormalMap, Outputs, PortSpec, PortType, Pose, Registry,
-    StageClock, StereoFrame, SurfelModel, TrackingState, TypedPlugin, VertexMap,
+    NodeContext, NodeError, NodeResult, NormalMap, Outputs, PointCloud, PortSpec, PortType, Pose,
+    Registry, StageClock, StereoFrame, SurfelModel, TrackingState, TypedPlugin, VertexMap,
 };
 use rayon::prelude::*;
 
@@ -182,6 +182,9 @@ impl SurfelNode {
         let stride = self.p.stride as usize;
         let mut metrics = Metrics::default();
         let (mut fused, mut added, mut removed, mut rebound) = (0usize, 0usize, 0usize, 0usize);
+        // With `visible_output`: this frame's visible surfels after the solve (none on the first
+        // frame and on lost frames, which select none).
+        let mut visible_cloud = None;
 
         if self.graph.is_none() {
             // The first frame: the model is the depth itself.
@@ -359,6 +362,9 @@ impl SurfelNode {
                 &mut live,
                 &mut live_n,
             );
+            if self.p.visible_output {
+                visible_cloud = Some(visible_cloud_of(&visible, thinned.as_deref(), &live));
+            }
             let nm = graph.normal_matrices();
             let cfw = pose.inverse();
             let (gw, gh) = (w.div_ceil(stride), h.div_ceil(stride));
@@ -616,6 +622,9 @@ impl SurfelNode {
             )?;
         }
         outputs.put("model", world)?;
+        if self.p.visible_output {
+            outputs.put("visible", visible_cloud.unwrap_or_default())?;
+        }
         outputs.put("graph", graph.to_payload())?;
         outputs.put(
             "pose",
@@ -707,6 +716,36 @@ impl Node for SurfelNode {
     }
 }
 
+/// The colour of a visible surfel the solve took ([`visible_cloud_of`]).
+pub const VISIBLE_SOLVED: [u8; 3] = [40, 200, 80];
+/// The colour of a visible surfel the solve left out (`solve_points_per_node`).
+pub const VISIBLE_LEFT: [u8; 3] = [150, 150, 150];
+
+/// The surfels of `visible` (ascending indices into `live`, the world-frame positions) as a
+/// cloud, those of `solved` (a subset, ascending; `None`: all of them) in [`VISIBLE_SOLVED`], the
+/// others in [`VISIBLE_LEFT`].
+fn visible_cloud_of(visible: &[u32], solved: Option<&[u32]>, live: &[Vector3<f64>]) -> PointCloud {
+    let mut taken = solved.map(|s| s.iter().peekable());
+    let colors = visible
+        .iter()
+        .map(|i| {
+            let took = match taken.as_mut() {
+                None => true,
+                Some(t) => t.next_if_eq(&i).is_some(),
+            };
+            if took {
+                VISIBLE_SOLVED
+            } else {
+                VISIBLE_LEFT
+            }
+        })
+        .collect();
+    PointCloud {
+        positions: visible.iter().map(|&i| arr3(&live[i as usize])).collect(),
+        colors: Some(colors),
+    }
+}
+
 /// Builds the node.
 pub fn build(p: Params, _: &BuildContext) -> Result<SurfelNode, BuildError> {
     p.check()?;
@@ -770,6 +809,11 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
         vec![
             PortSpec::new("model", PortType::Model, "the live surfel model, world frame"),
             PortSpec::optional(
+                "visible",
+                PortType::PointCloud,
+                "with `visible_output = true`: the surfels selected as visible (epsilon_dv, epsilon_nv), world frame, after the solve; green those the solve took, grey those `solve_points_per_node` left out (empty on the first frame and on lost frames)",
+            ),
+            PortSpec::optional(
                 "model_camera",
                 PortType::Model,
                 "with `camera_model = true`: the same model in the scope's frame (camera_from_world of `pose` applied to positions and normals)",
@@ -785,14 +829,20 @@ pub fn register(registry: &mut Registry) -> Result<(), String> {
         build,
     )
     .with_absent_outputs(|p: &Params| {
-        if p.camera_model {
-            Vec::new()
-        } else {
-            vec![(
+        let mut absent = Vec::new();
+        if !p.camera_model {
+            absent.push((
                 "model_camera".to_owned(),
                 "set its `camera_model = true`".to_owned(),
-            )]
+            ));
         }
+        if !p.visible_output {
+            absent.push((
+                "visible".to_owned(),
+                "set its `visible_output = true`".to_owned(),
+            ));
+        }
+        absent
     }))
 }
 
@@ -856,6 +906,19 @@ mod tests {
         );
         assert!(n > 0 && n < 300, "{n} rebound");
         assert_eq!(bindings, graph.bind_all(&moved));
+    }
+
+    #[test]
+    fn the_visible_cloud_colours_what_the_solve_took() {
+        let live: Vec<Vector3<f64>> = (0..10).map(|i| Vector3::new(i as f64, 0.0, 1.0)).collect();
+        let visible = [1, 3, 4, 7, 9];
+        let c = visible_cloud_of(&visible, Some(&[3, 9]), &live);
+        assert_eq!(c.positions, visible.map(|i| [i as f32, 0.0, 1.0]));
+        let (s, l) = (VISIBLE_SOLVED, VISIBLE_LEFT);
+        assert_eq!(c.colors, Some(vec![l, s, l, l, s]));
+        // Without thinning the solve took every visible surfel.
+        let c = visible_cloud_of(&visible, None, &live);
+        assert_eq!(c.colors, Some(vec![s; 5]));
     }
 
     #[test]

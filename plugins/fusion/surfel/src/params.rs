@@ -87,6 +87,10 @@ pub struct Params {
     /// every frame (and in a recording); at 640x480 (16,000 surfels, 2 cores) it adds 0.12 to
     /// 0.15 ms to fusion's `output` stage.
     pub camera_model: bool,
+    /// Also output the surfels selected as visible on each frame (`visible`, world frame, after
+    /// the solve; coloured by whether the solve took them), for looking at the selection and
+    /// `solve_points_per_node` in the viewer. Off by default.
+    pub visible_output: bool,
 }
 
 impl Default for Params {
@@ -121,6 +125,7 @@ impl Default for Params {
             rebind_distance_mm: 0.25,
             correspondences: CorrParams::default(),
             camera_model: false,
+            visible_output: false,
         }
     }
 }
