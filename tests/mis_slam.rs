@@ -102,18 +102,13 @@ fn the_model_is_output_in_the_scope_frame_too() {
     // `camera_model = true`: `model_camera` is the world-frame model seen from fusion's pose.
     // Both exported at the end, with the pose of every frame; the last frame's pose must carry
     // each scope-frame surfel onto its world-frame one.
-    let text = std::fs::read_to_string("graphs/mis_slam.toml").unwrap();
-    let graph = format!(
-        "{text}\n[[node]]\nid = \"scope\"\nplugin = \"sink.files\"\n\
-         inputs = {{ model = \"fusion.model_camera\", pose = \"fusion.pose\" }}\n\
-         params = {{ dir = \"scope\", geometry_every = 0 }}\nlog = false\n"
+    let dir = common::run_with_sink(
+        "graphs/mis_slam.toml",
+        "scope",
+        r#"{ model = "fusion.model_camera", pose = "fusion.pose" }"#,
+        &["graph.frames.count=8", "fusion.camera_model=true"],
+        "mis_slam_scope_frame",
     );
-    let dir = common::tmp_dir("mis_slam_scope_frame");
-    let path = dir.join("graph.toml");
-    std::fs::write(&path, graph).unwrap();
-    let sets = ["graph.frames.count=8", "fusion.camera_model=true"].map(String::from);
-    let g = misslam::framework::graph::load(&path, &misslam::builtin_registry(), &sets).unwrap();
-    common::run_graph_ok(g, &dir);
     let (n, moved) = common::assert_scope_frame(
         &dir.join("export/model/final.ply"),
         &dir.join("scope/model/final.ply"),
@@ -126,29 +121,23 @@ fn the_model_is_output_in_the_scope_frame_too() {
 
 #[test]
 fn the_visible_surfels_are_output_coloured_by_whether_the_solve_took_them() {
-    // `visible_output = true` at 640x480, where the solve takes one visible surfel in three
+    // `visible_output = true` at 640x480, where the solve takes a share of the visible surfels
     // (`solve_points_per_node`): the last frame's cloud holds as many points as the frame's
     // `fusion.visible`, as many of them green as its `fusion.solve_points`, the rest grey.
-    let text = std::fs::read_to_string("graphs/mis_slam.toml").unwrap();
-    let graph = format!(
-        "{text}\n[[node]]\nid = \"seen\"\nplugin = \"sink.files\"\n\
-         inputs = {{ points = \"fusion.visible\", metrics = \"fusion.info\" }}\n\
-         params = {{ dir = \"seen\", geometry_every = 0 }}\nlog = false\n"
+    let dir = common::run_with_sink(
+        "graphs/mis_slam.toml",
+        "seen",
+        r#"{ points = "fusion.visible", metrics = "fusion.info" }"#,
+        &[
+            "graph.frames.count=5",
+            "src.width=640",
+            "src.height=480",
+            "src.focal_px=700",
+            "depth.max_disparity=96",
+            "fusion.visible_output=true",
+        ],
+        "mis_slam_visible",
     );
-    let dir = common::tmp_dir("mis_slam_visible");
-    let path = dir.join("graph.toml");
-    std::fs::write(&path, graph).unwrap();
-    let sets = [
-        "graph.frames.count=5",
-        "src.width=640",
-        "src.height=480",
-        "src.focal_px=700",
-        "depth.max_disparity=96",
-        "fusion.visible_output=true",
-    ]
-    .map(String::from);
-    let g = misslam::framework::graph::load(&path, &misslam::builtin_registry(), &sets).unwrap();
-    common::run_graph_ok(g, &dir);
     let cloud = common::ply_vertices(&dir.join("seen/points/final.ply"));
     let jsonl = std::fs::read_to_string(dir.join("seen/metrics.jsonl")).unwrap();
     let last: serde_json::Value = serde_json::from_str(jsonl.lines().last().unwrap()).unwrap();

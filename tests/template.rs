@@ -393,18 +393,13 @@ fn dff_is_at_least_as_accurate_as_back_projection_on_heart_kidney_and_liver() {
 fn the_template_is_output_in_the_scope_frame_too() {
     // `camera_mesh = true`: `mesh_camera` is the deformed template seen from fusion's pose; the
     // last frame's pose carries each of its vertices onto the world-frame mesh's.
-    let text = std::fs::read_to_string("graphs/template_dff.toml").unwrap();
-    let graph = format!(
-        "{text}\n[[node]]\nid = \"scope\"\nplugin = \"sink.files\"\n\
-         inputs = {{ mesh = \"fusion.mesh_camera\", pose = \"fusion.pose\" }}\n\
-         params = {{ dir = \"scope\", geometry_every = 0 }}\nlog = false\n"
+    let dir = common::run_with_sink(
+        "graphs/template_dff.toml",
+        "scope",
+        r#"{ mesh = "fusion.mesh_camera", pose = "fusion.pose" }"#,
+        &["graph.frames.count=4", "fusion.camera_mesh=true"],
+        "template_scope_frame",
     );
-    let dir = common::tmp_dir("template_scope_frame");
-    let path = dir.join("graph.toml");
-    std::fs::write(&path, graph).unwrap();
-    let sets = ["graph.frames.count=4", "fusion.camera_mesh=true"].map(String::from);
-    let g = misslam::framework::graph::load(&path, &misslam::builtin_registry(), &sets).unwrap();
-    common::run_graph_ok(g, &dir);
     let (n, apart) = common::assert_scope_frame(
         &dir.join("export/mesh/final.ply"),
         &dir.join("scope/mesh/final.ply"),

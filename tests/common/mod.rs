@@ -110,6 +110,25 @@ pub fn run_graph_file(path: &str, sets: &[String], out: &Path) -> misslam::frame
     run_graph_ok(g, out)
 }
 
+/// Runs the graph file `graph` with one more node, a `sink.files` node `id` writing `inputs` (an
+/// inline table such as `{ model = "fusion.model" }`) into `<run>/<id>` at the end of the run, and
+/// the overrides `sets`; returns the run's folder, the fresh temporary folder `name`.
+pub fn run_with_sink(graph: &str, id: &str, inputs: &str, sets: &[&str], name: &str) -> PathBuf {
+    let text = std::fs::read_to_string(graph).unwrap_or_else(|e| panic!("{graph}: {e}"));
+    let text = format!(
+        "{text}\n[[node]]\nid = \"{id}\"\nplugin = \"sink.files\"\ninputs = {inputs}\n\
+         params = {{ dir = \"{id}\", geometry_every = 0 }}\nlog = false\n"
+    );
+    let dir = tmp_dir(name);
+    let path = dir.join("graph.toml");
+    std::fs::write(&path, text).expect("write the graph");
+    let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+    let g = misslam::framework::graph::load(&path, &misslam::builtin_registry(), &sets)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    run_graph_ok(g, &dir);
+    dir
+}
+
 /// Verifies a recording with the rerun CLI (`rrd verify`) and returns a function printing it
 /// (`rrd print FLAG`); `None`, with the reason printed, when there is no CLI.
 pub fn rerun_verified(rrd: &Path) -> Option<impl Fn(&str) -> String + '_> {
