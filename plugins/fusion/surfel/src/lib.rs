@@ -617,7 +617,11 @@ impl SurfelNode {
                 SurfelModel {
                     positions,
                     normals,
-                    ..world.clone()
+                    colors: world.colors.clone(),
+                    weights: world.weights.clone(),
+                    timestamps: world.timestamps.clone(),
+                    stability: world.stability.clone(),
+                    ids: world.ids.clone(),
                 },
             )?;
         }
